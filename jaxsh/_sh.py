@@ -1,0 +1,228 @@
+"""Real and complex spherical-harmonic bases, evaluated from Cartesian directions.
+
+The recurrence is written in $(x, y, z)$ so that it has no `atan2`/`arccos`
+and no singularity at the poles (the approach of sphericart: Bigi et al. 2023,
+J. Chem. Phys. 159, 064802). With $\\bar q_l^m$ the fully normalized associated
+Legendre function divided by $\\sin^m\\theta$,
+
+$$Y_{l,0} = \\bar q_l^0(z),\\quad
+  Y_{l,m} = \\sqrt2\\,\\bar q_l^m(z)\\,\\mathrm{Re}(x+iy)^m,\\quad
+  Y_{l,-m} = \\sqrt2\\,\\bar q_l^m(z)\\,\\mathrm{Im}(x+iy)^m\\quad(m>0),$$
+
+since $(x+iy)^m = \\sin^m\\theta\\,e^{im\\phi}$ on the unit sphere. The
+$\\bar q$ obey the standard normalized three-term recurrence
+
+$$\\bar q_m^m = \\sqrt{\\tfrac{2m+1}{2m}}\\,\\bar q_{m-1}^{m-1},\\quad
+  \\bar q_{m+1}^m = \\sqrt{2m+3}\\,z\\,\\bar q_m^m,\\quad
+  \\bar q_l^m = a_{lm}\\,(z\\,\\bar q_{l-1}^m - b_{lm}\\,\\bar q_{l-2}^m),$$
+
+$a_{lm} = \\sqrt{(4l^2-1)/(l^2-m^2)}$, $b_{lm} = \\sqrt{((l-1)^2-m^2)/(4(l-1)^2-1)}$,
+$\\bar q_0^0 = 1/\\sqrt{4\\pi}$. Every quantity is a polynomial in the unit
+vector, so values and gradients are finite everywhere; no un-normalized
+double factorial appears, so float32 stays accurate to high degree.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Complex, Float
+
+from ._checks import check_dirs, check_lmax
+from ._indexing import sh_degrees, sh_orders
+
+# Band limits up to this value use a fully unrolled expression (one fused
+# kernel); larger ones a `lax.scan` over l (bounded compile time).
+_UNROLL_MAX = 20
+
+
+def _diag_constants(lmax: int) -> np.ndarray:
+    """$\\bar q_m^m$ for m = 0..lmax (float64, NumPy)."""
+    q = np.empty(lmax + 1)
+    q[0] = 1.0 / np.sqrt(4.0 * np.pi)
+    for m in range(1, lmax + 1):
+        q[m] = q[m - 1] * np.sqrt((2 * m + 1) / (2 * m))
+    return q
+
+
+def _recurrence_tables(lmax: int):
+    """Tables A[l, m], B[l, m], D[l, m] with q_l = A z q_{l-1} - B q_{l-2} + D.
+
+    The m > 0 entries carry the sqrt(2) of the real basis (folded into the
+    diagonal seed; the recurrence is linear).
+    """
+    n = lmax + 1
+    a = np.zeros((n, n))
+    b = np.zeros((n, n))
+    d = np.zeros((n, n))
+    diag = _diag_constants(lmax) * np.where(np.arange(n) > 0, np.sqrt(2.0), 1.0)
+    for l in range(n):
+        d[l, l] = diag[l]
+        if l >= 1:
+            a[l, l - 1] = np.sqrt(2 * l + 1)
+        for m in range(0, l - 1):
+            alm = np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
+            blm = np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))
+            a[l, m] = alm
+            b[l, m] = alm * blm
+    return a, b, d
+
+
+def _unit_vectors(dirs):
+    """Normalize; a zero, infinite or NaN direction is an error (checked in jit)."""
+    norm2 = jnp.sum(dirs * dirs, axis=-1, keepdims=True)
+    bad = jnp.any(~(jnp.isfinite(norm2) & (norm2 > 0)))
+    norm2 = eqx.error_if(norm2, bad, "`dirs` contains a zero-length or non-finite direction")
+    return dirs * jax.lax.rsqrt(norm2)
+
+
+def _basis_unrolled(x, y, z, lmax: int):
+    """List of the (lmax+1)**2 real SH, in flat order, as arrays shaped like x."""
+    diag = _diag_constants(lmax)
+    c = [jnp.ones_like(x)]
+    s = [jnp.zeros_like(x)]
+    for m in range(1, lmax + 1):
+        c.append(x * c[m - 1] - y * s[m - 1])
+        s.append(x * s[m - 1] + y * c[m - 1])
+    # q[m] holds (q_{l-1}^m, q_{l-2}^m) as the loop over l proceeds.
+    prev = {}
+    out = []
+    for l in range(lmax + 1):
+        row = {}
+        for m in range(l + 1):
+            if m == l:
+                q = float(diag[l] * (np.sqrt(2.0) if m > 0 else 1.0))
+            elif m == l - 1:
+                q = float(np.sqrt(2 * l + 1)) * z * prev[m][0]
+            else:
+                alm = float(np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m)))
+                blm = float(np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0)))
+                q = alm * (z * prev[m][0] - blm * prev[m][1])
+            row[m] = q
+        for m in range(l + 1):
+            prev[m] = (row[m], prev[m][0] if m in prev else None)
+        for m in range(-l, l + 1):
+            q = row[abs(m)]
+            if m == 0:
+                out.append(q * c[0] if isinstance(q, float) else q)  # l = 0: a constant
+            elif m > 0:
+                out.append(q * c[m])
+            else:
+                out.append(q * s[-m])
+    return out
+
+
+def _basis_scan(x, y, z, lmax: int):
+    """Real SH with a `lax.scan` over l (vectorized over m); shape (n_coeffs, N)."""
+    dtype = x.dtype
+    a, b, d = (jnp.asarray(t, dtype=dtype) for t in _recurrence_tables(lmax))
+    n = lmax + 1
+
+    def cs_step(carry, _):
+        cm, sm = carry
+        nxt = (x * cm - y * sm, x * sm + y * cm)
+        return nxt, carry
+
+    _, (cos_m, sin_m) = jax.lax.scan(cs_step, (jnp.ones_like(x), jnp.zeros_like(x)), None, length=n)
+
+    def q_step(carry, tables):
+        q1, q2 = carry  # q_{l-1}, q_{l-2}: (n, N)
+        al, bl, dl = tables
+        ql = al[:, None] * (z[None, :] * q1) - bl[:, None] * q2 + dl[:, None]
+        return (ql, q1), ql
+
+    zeros = jnp.zeros((n,) + x.shape, dtype)
+    _, q = jax.lax.scan(q_step, (zeros, zeros), (a, b, d))  # (l, m, N)
+    ls = sh_degrees(lmax)
+    ms = sh_orders(lmax)
+    trig = jnp.concatenate([sin_m[1:][::-1], cos_m], axis=0)  # rows m = -lmax..lmax
+    return q[ls, np.abs(ms)] * trig[ms + lmax]
+
+
+def _real_sh_flat(unit, lmax: int):
+    """Real SH of unit vectors (N, 3) -> (N, n_coeffs)."""
+    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
+    if lmax <= _UNROLL_MAX:
+        return jnp.stack(_basis_unrolled(x, y, z, lmax), axis=-1)
+    return _basis_scan(x, y, z, lmax).T
+
+
+def real_sh(dirs: Float[Array, "*batch 3"], lmax: int) -> Float[Array, "*batch n_coeffs"]:
+    """Real orthonormal spherical harmonics $Y_{lm}(\\omega)$ for $l \\le l_{max}$.
+
+    Convention (DESIGN.md): orthonormal on the sphere, no sign flips,
+    $Y_{1,-1} = c\\,y$, $Y_{1,0} = c\\,z$, $Y_{1,1} = c\\,x$ with
+    $c = \\sqrt{3/4\\pi}$; in general $Y_{l,m} = \\sqrt2(-1)^m\\mathrm{Re}\\,Y_l^m$ and
+    $Y_{l,-m} = \\sqrt2(-1)^m\\mathrm{Im}\\,Y_l^m$ for $m > 0$, with $Y_l^m$ the
+    complex harmonics of `complex_sh`. Flat index $i = l^2 + l + m$. The same
+    convention as sphericart.
+
+    Evaluated by a normalized recurrence in Cartesian coordinates (see the
+    module docstring): finite values and gradients everywhere, poles included.
+    Accuracy against `scipy.special.sph_harm_y`: ≤ 1e-12 absolute for
+    $l_{max} \\le 100$ in float64, ≤ 1e-5 for $l_{max} \\le 30$ in float32.
+
+    **Arguments:**
+
+    - `dirs`: directions, shape `(..., 3)`. They are normalized here, so the
+      result is a function on the sphere and its gradient is tangential; a
+      zero-length or non-finite direction raises an error at run time.
+    - `lmax`: band limit (static Python int, ≥ 0).
+
+    **Returns:** shape `(..., (lmax+1)**2)`, the dtype of `dirs`.
+
+    Comparable to `sphericart.SphericalHarmonics(lmax)` and to
+    `scipy.special.sph_harm_y` (complex, angles instead of directions).
+    """
+    dirs = check_dirs(dirs)
+    lmax = check_lmax(lmax)
+    return _real_sh_jit(dirs, lmax)
+
+
+@eqx.filter_jit
+def _real_sh_jit(dirs, lmax):
+    batch = dirs.shape[:-1]
+    unit = _unit_vectors(dirs.reshape(-1, 3))
+    return _real_sh_flat(unit, lmax).reshape(batch + ((lmax + 1) ** 2,))
+
+
+def _complex_from_real(yr, lmax: int):
+    """Combine real SH (…, n) into complex SH (…, n) with the CS phase."""
+    ls = sh_degrees(lmax)
+    ms = sh_orders(lmax)
+    base = ls * ls + ls
+    pos = base + np.abs(ms)
+    neg = base - np.abs(ms)
+    re = yr[..., pos]
+    im = yr[..., neg]
+    am = np.abs(ms)
+    sign_re = np.where(ms > 0, (-1.0) ** am, 1.0) / np.where(ms != 0, np.sqrt(2.0), 1.0)
+    sign_im = np.where(ms > 0, (-1.0) ** am, np.where(ms < 0, -1.0, 0.0)) / np.where(
+        ms != 0, np.sqrt(2.0), 1.0
+    )
+    dtype = yr.dtype
+    lead = (1,) * (yr.ndim - 1)
+    sign_re = jnp.asarray(sign_re, dtype).reshape(lead + (-1,))
+    sign_im = jnp.asarray(sign_im, dtype).reshape(lead + (-1,))
+    return jax.lax.complex(re * sign_re, im * sign_im)
+
+
+def complex_sh(dirs: Float[Array, "*batch 3"], lmax: int) -> Complex[Array, "*batch n_coeffs"]:
+    """Complex orthonormal spherical harmonics $Y_l^m(\\omega)$.
+
+    $Y_l^m = N_{lm} P_l^m(\\cos\\theta) e^{im\\phi}$ with the Condon-Shortley
+    phase inside $P_l^m$, exactly `scipy.special.sph_harm_y(l, m, θ, φ)`;
+    $Y_l^{-m} = (-1)^m \\overline{Y_l^m}$. Same layout, accuracy and
+    argument rules as `real_sh`; the result is complex64 for float32 input,
+    complex128 for float64.
+    """
+    dirs = check_dirs(dirs)
+    lmax = check_lmax(lmax)
+    return _complex_sh_jit(dirs, lmax)
+
+
+@eqx.filter_jit
+def _complex_sh_jit(dirs, lmax):
+    return _complex_from_real(_real_sh_jit(dirs, lmax), lmax)

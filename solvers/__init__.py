@@ -1,0 +1,1 @@
+"""Inverse problems built on jaxsh."""

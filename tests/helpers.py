@@ -1,0 +1,57 @@
+"""Independent references for the tests (scipy, explicit formulas)."""
+
+import numpy as np
+import scipy.special as sp
+
+
+def scipy_complex_sh(dirs, lmax):
+    """Complex SH from scipy.special.sph_harm_y, flat layout (..., (lmax+1)**2)."""
+    dirs = np.asarray(dirs, dtype=np.float64)
+    dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+    theta = np.arctan2(np.hypot(dirs[..., 0], dirs[..., 1]), dirs[..., 2])  # accurate near the poles
+    phi = np.arctan2(dirs[..., 1], dirs[..., 0])
+    return np.stack(
+        [sp.sph_harm_y(l, m, theta, phi) for l in range(lmax + 1) for m in range(-l, l + 1)],
+        axis=-1,
+    )
+
+
+def scipy_real_sh(dirs, lmax):
+    """Real SH built from scipy's complex SH with DESIGN.md's convention.
+
+    Y_{l,m} = sqrt2 (-1)^m Re Y_l^m, Y_{l,-m} = sqrt2 (-1)^m Im Y_l^m (m > 0).
+    """
+    yc = scipy_complex_sh(dirs, lmax)
+    out = np.empty(yc.shape, dtype=np.float64)
+    for l in range(lmax + 1):
+        base = l * l + l
+        out[..., base] = yc[..., base].real
+        for m in range(1, l + 1):
+            s = np.sqrt(2.0) * (-1.0) ** m
+            out[..., base + m] = s * yc[..., base + m].real
+            out[..., base - m] = s * yc[..., base + m].imag
+    return out
+
+
+def tol(dtype, x64=1e-10, x32=1e-4):
+    """Tolerance by precision (STYLE.md item 9)."""
+    return x64 if np.dtype(dtype) == np.float64 else x32
+
+
+def random_dirs(rng, shape):
+    d = rng.normal(size=tuple(shape) + (3,))
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def random_rotation(rng, shape=()):
+    """Uniform random rotations (QR of a Gaussian matrix, det +1)."""
+    a = rng.normal(size=tuple(shape) + (3, 3))
+    q, r = np.linalg.qr(a)
+    q = q * np.sign(np.diagonal(r, axis1=-2, axis2=-1))[..., None, :]
+    det = np.linalg.det(q)
+    q[..., :, 0] *= det[..., None]
+    return q
+
+
+def is_x64(x):
+    return np.dtype(x.dtype) in (np.float64, np.complex128)

@@ -1,0 +1,273 @@
+"""The SH basis: convention, accuracy against scipy, identities, gradients, errors."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, strategies as st
+
+import jaxsh
+
+from .helpers import random_dirs, scipy_complex_sh, scipy_real_sh
+
+
+# ---------------------------------------------------------------- indexing
+
+
+def test_indexing_roundtrip():
+    i = 0
+    for l in range(12):
+        for m in range(-l, l + 1):
+            assert jaxsh.sh_index(l, m) == i
+            assert jaxsh.sh_degree_order(i) == (l, m)
+            i += 1
+    assert jaxsh.num_coeffs(11) == i
+    np.testing.assert_array_equal(jaxsh.sh_degrees(2), [0, 1, 1, 1, 2, 2, 2, 2, 2])
+    np.testing.assert_array_equal(jaxsh.sh_orders(2), [0, -1, 0, 1, -2, -1, 0, 1, 2])
+
+
+def test_sh_lambda_closed_form():
+    lam = jaxsh.sh_lambda(3)
+    np.testing.assert_allclose(lam, [np.sqrt(4 * np.pi), np.sqrt(4 * np.pi / 3), np.sqrt(4 * np.pi / 5), np.sqrt(4 * np.pi / 7)])
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, "3", True, None])
+def test_index_errors(bad):
+    with pytest.raises(ValueError, match="lmax"):
+        jaxsh.num_coeffs(bad)
+
+
+def test_sh_index_bad_m():
+    with pytest.raises(ValueError, match="m"):
+        jaxsh.sh_index(2, 3)
+
+
+# ---------------------------------------------------------------- convention
+
+
+def test_real_convention_l1_pinned():
+    """DESIGN.md: Y_{1,-1} = +c y, Y_{1,0} = +c z, Y_{1,1} = +c x, c = sqrt(3/4pi)."""
+    c = np.sqrt(3 / (4 * np.pi))
+    for d in np.eye(3):
+        y = np.asarray(jaxsh.real_sh(d, 1))
+        np.testing.assert_allclose(y[0], 1 / np.sqrt(4 * np.pi), rtol=1e-14)
+        np.testing.assert_allclose(y[1:], c * d[[1, 2, 0]], atol=1e-15)
+
+
+def test_real_convention_l2_closed_forms(rng):
+    """Classic closed forms of the irradiance literature (no sign flips)."""
+    d = random_dirs(rng, (50,))
+    x, y, z = d.T
+    got = np.asarray(jaxsh.real_sh(d, 2))[:, 4:]
+    k = 0.5 * np.sqrt(15 / np.pi)
+    want = np.stack(
+        [k * x * y, k * y * z, 0.25 * np.sqrt(5 / np.pi) * (3 * z * z - 1), k * x * z, 0.5 * k * (x * x - y * y)],
+        -1,
+    )
+    np.testing.assert_allclose(got, want, atol=1e-14)
+
+
+def test_complex_phase_is_condon_shortley():
+    d = np.array([1.0, 0.0, 0.0])
+    y = np.asarray(jaxsh.complex_sh(d, 1))
+    # Y_1^1(theta=pi/2, phi=0) = -sqrt(3/8pi) with the CS phase.
+    assert y[3].real == pytest.approx(-np.sqrt(3 / (8 * np.pi)), rel=1e-14)
+    assert y[1].real == pytest.approx(np.sqrt(3 / (8 * np.pi)), rel=1e-14)
+
+
+# ---------------------------------------------------------------- accuracy vs scipy
+
+
+def _test_dirs(rng, n):
+    d = random_dirs(rng, (n,))
+    special = np.array(
+        [[0, 0, 1], [0, 0, -1], [1, 0, 0], [0, 1, 0], [1e-9, 0, 1], [0, 1e-12, -1], [1, 1, 1e-13]],
+        dtype=np.float64,
+    )
+    special /= np.linalg.norm(special, axis=-1, keepdims=True)
+    return np.concatenate([d, special])
+
+
+@pytest.mark.parametrize("lmax", [0, 1, 2, 7, 20, 21, 45])
+def test_real_sh_matches_scipy_f64(rng, lmax):
+    d = _test_dirs(rng, 200)
+    got = np.asarray(jaxsh.real_sh(d, lmax))
+    assert got.dtype == np.float64
+    np.testing.assert_allclose(got, scipy_real_sh(d, lmax), rtol=0, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_real_sh_matches_scipy_lmax100(rng):
+    d = _test_dirs(rng, 60)
+    got = np.asarray(jaxsh.real_sh(d, 100))
+    np.testing.assert_allclose(got, scipy_real_sh(d, 100), rtol=0, atol=1e-12)
+
+
+def test_complex_sh_matches_scipy(rng):
+    d = _test_dirs(rng, 100)
+    got = np.asarray(jaxsh.complex_sh(d, 12))
+    assert got.dtype == np.complex128
+    np.testing.assert_allclose(got, scipy_complex_sh(d, 12), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("lmax", [4, 16, 30])
+def test_float32_accuracy(rng, lmax):
+    """float32 stays within 1e-5 of the exact values at the float32 inputs up to l = 30."""
+    d32 = _test_dirs(rng, 300).astype(np.float32)
+    got = jaxsh.real_sh(d32, lmax)
+    assert got.dtype == jnp.float32
+    ref = scipy_real_sh(d32.astype(np.float64), lmax)
+    assert np.abs(np.asarray(got, np.float64) - ref).max() <= 1e-5
+    gotc = jaxsh.complex_sh(d32, lmax)
+    assert gotc.dtype == jnp.complex64
+
+
+def test_unnormalized_directions_are_normalized(rng):
+    d = random_dirs(rng, (20,))
+    scale = rng.uniform(0.1, 10, size=(20, 1))
+    np.testing.assert_allclose(jaxsh.real_sh(d * scale, 6), jaxsh.real_sh(d, 6), atol=1e-13)
+
+
+# ---------------------------------------------------------------- identities
+
+
+def test_orthonormal_by_quadrature():
+    """Gauss-Legendre x uniform-phi quadrature, exact for degree <= 2*lmax."""
+    lmax = 12
+    nt, nphi = lmax + 1, 2 * lmax + 2
+    z, w = np.polynomial.legendre.leggauss(nt)
+    phi = 2 * np.pi * np.arange(nphi) / nphi
+    s = np.sqrt(1 - z * z)
+    d = np.stack(np.broadcast_arrays(s[:, None] * np.cos(phi), s[:, None] * np.sin(phi), z[:, None]), -1)
+    wt = (w[:, None] * np.full(nphi, 2 * np.pi / nphi)).reshape(-1)
+    y = np.asarray(jaxsh.real_sh(d.reshape(-1, 3), lmax))
+    gram = (y * wt[:, None]).T @ y
+    np.testing.assert_allclose(gram, np.eye(jaxsh.num_coeffs(lmax)), atol=1e-12)
+    yc = np.asarray(jaxsh.complex_sh(d.reshape(-1, 3), lmax))
+    gramc = (np.conj(yc) * wt[:, None]).T @ yc
+    np.testing.assert_allclose(gramc, np.eye(jaxsh.num_coeffs(lmax)), atol=1e-12)
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(0, 40))
+def test_addition_theorem(seed, lmax):
+    """sum_m Y_lm(a) Y_lm(b) = (2l+1)/(4 pi) P_l(a . b), band by band."""
+    rng = np.random.default_rng(seed)
+    a, b = random_dirs(rng, (2,))
+    ya = np.asarray(jaxsh.real_sh(a, lmax))
+    yb = np.asarray(jaxsh.real_sh(b, lmax))
+    ls = jaxsh.sh_degrees(lmax)
+    lhs = np.bincount(ls, weights=ya * yb)
+    from scipy.special import eval_legendre
+
+    rhs = (2 * np.arange(lmax + 1) + 1) / (4 * np.pi) * eval_legendre(np.arange(lmax + 1), np.dot(a, b))
+    np.testing.assert_allclose(lhs, rhs, atol=1e-12)
+
+
+def test_real_complex_change_of_basis(rng):
+    d = random_dirs(rng, (30,))
+    u = jaxsh.real_to_complex_matrix(6)
+    np.testing.assert_allclose(u @ u.conj().T, np.eye(49), atol=1e-15)
+    yr = np.asarray(jaxsh.real_sh(d, 6))
+    yc = np.asarray(jaxsh.complex_sh(d, 6))
+    np.testing.assert_allclose(yr @ u.T, yc, atol=1e-13)
+
+
+def test_parity(rng):
+    """Y_lm(-w) = (-1)^l Y_lm(w)."""
+    d = random_dirs(rng, (40,))
+    ls = jaxsh.sh_degrees(15)
+    np.testing.assert_allclose(jaxsh.real_sh(-d, 15), (-1.0) ** ls * np.asarray(jaxsh.real_sh(d, 15)), atol=1e-12)
+
+
+# ---------------------------------------------------------------- batching, jit
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2), (0,)])
+def test_batch_shapes(rng, shape):
+    d = random_dirs(rng, shape) if shape != (0,) else np.zeros((0, 3))
+    y = jaxsh.real_sh(d, 3)
+    assert y.shape == shape + (16,)
+    if d.size:
+        flat = np.asarray(jaxsh.real_sh(d.reshape(-1, 3), 3))
+        np.testing.assert_allclose(np.asarray(y).reshape(-1, 16), flat, atol=0)
+    assert jaxsh.complex_sh(d, 3).shape == shape + (16,)
+
+
+def test_vmap_and_jit_agree(rng):
+    d = random_dirs(rng, (5, 3))
+    f = jax.jit(jax.vmap(lambda v: jaxsh.real_sh(v, 5)))
+    np.testing.assert_allclose(f(d), jaxsh.real_sh(d, 5), atol=1e-14)
+
+
+def test_no_retrace_for_new_values(rng):
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def f(d):
+        return jaxsh.real_sh(d, 4)
+
+    for _ in range(3):
+        f(random_dirs(rng, (7,)))
+
+
+def test_scan_and_unrolled_paths_agree(rng):
+    from jaxsh import _sh
+
+    d = jnp.asarray(random_dirs(rng, (64, 3)).reshape(-1, 3))
+    a = jnp.stack(_sh._basis_unrolled(d[:, 0], d[:, 1], d[:, 2], 12), -1)
+    b = _sh._basis_scan(d[:, 0], d[:, 1], d[:, 2], 12).T
+    np.testing.assert_allclose(a, b, atol=1e-14)
+
+
+# ---------------------------------------------------------------- gradients
+
+
+@pytest.mark.parametrize("lmax", [3, 24])
+def test_gradient_vs_finite_differences(rng, lmax):
+    d = random_dirs(rng, (4,))
+    w = rng.normal(size=jaxsh.num_coeffs(lmax))
+
+    def f(v):
+        return jnp.dot(jaxsh.real_sh(v, lmax), w)
+
+    g = jax.vmap(jax.grad(f))(d)
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (jax.vmap(f)(d + e) - jax.vmap(f)(d - e)) / (2 * h)
+        np.testing.assert_allclose(g[:, k], fd, rtol=1e-6, atol=1e-6)
+    # The direction is normalized inside: the gradient is tangential.
+    np.testing.assert_allclose(np.sum(np.asarray(g) * d, -1), 0, atol=1e-10)
+    jfwd = jax.jacfwd(f)(d[0])
+    jrev = jax.jacrev(f)(d[0])
+    np.testing.assert_allclose(jfwd, jrev, atol=1e-11)
+
+
+def test_gradient_finite_at_poles():
+    poles = jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-300, 0.0, 1.0]])
+    g = jax.jacrev(lambda v: jaxsh.real_sh(v, 10))(poles)
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+# ---------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize("shape", [(3, 2), (4,), ()])
+def test_bad_dirs_shape(shape):
+    with pytest.raises(ValueError, match=r"dirs.*\(\.\.\., 3\)"):
+        jaxsh.real_sh(np.ones(shape), 2)
+
+
+def test_negative_lmax():
+    with pytest.raises(ValueError, match="lmax"):
+        jaxsh.real_sh(np.ones(3), -1)
+    with pytest.raises(ValueError, match="lmax"):
+        jaxsh.complex_sh(np.ones(3), 2.5)
+
+
+def test_zero_or_nan_direction_raises():
+    with pytest.raises(Exception, match="zero-length or non-finite"):
+        jaxsh.real_sh(np.zeros((2, 3)), 2).block_until_ready()
+    with pytest.raises(Exception, match="zero-length or non-finite"):
+        jaxsh.real_sh(np.array([np.nan, 0, 1.0]), 2).block_until_ready()
