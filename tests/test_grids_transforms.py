@@ -119,7 +119,7 @@ def test_synthesis_equals_pointwise_evaluation(rng, h, w, lmax):
     np.testing.assert_allclose(img1, np.asarray(img)[..., 0], atol=1e-13)
 
 
-@given(st.integers(0, 2**32 - 1), st.integers(0, 24), st.integers(0, 3), st.integers(0, 3))
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0, 3, 24]), st.integers(0, 1), st.integers(0, 3))
 def test_round_trip_is_identity(seed, lmax, extra_h, extra_w):
     """analysis o synthesis = identity for lmax < H/2, W > 2 lmax."""
     rng = np.random.default_rng(seed)

@@ -69,7 +69,7 @@ def test_representation_property(seed):
     np.testing.assert_allclose(np.asarray(jaxsh.wigner_D(r1.T, lmax)), np.asarray(jaxsh.wigner_D(r1, lmax)).T, atol=1e-12)
 
 
-@given(st.integers(0, 2**32 - 1), st.integers(0, 12))
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0, 1, 9]))
 def test_rotate_then_synthesize(seed, lmax):
     """sum_i (D c)_i Y_i(w) = sum_i c_i Y_i(R^T w)."""
     rng = np.random.default_rng(seed)

@@ -1,0 +1,36 @@
+# Two commands on a fresh machine:
+#   make demo   — create .venv, install jaxsh, run the end-to-end synthetic pipeline
+#   make test   — create .venv, install jaxsh with its test extras, run the test suite
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+PYTEST_ARGS ?=
+
+.PHONY: demo test test-all bench install install-tests clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+install: $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+
+install-tests: $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[tests]"
+
+demo: install
+	$(BIN)/jaxsh demo --out demo_out --json demo_out/report.json
+
+# The CI suite: everything but tests marked slow; notebooks run small.
+test: install-tests
+	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -m "not slow" -n 2 --nbmake $(PYTEST_ARGS) tests notebooks
+
+test-all: install-tests
+	$(BIN)/python -m pytest -n 2 --nbmake tests notebooks
+
+bench: $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[benchmarks]"
+	$(BIN)/python benchmarks/bench_sh.py
+
+clean:
+	rm -rf $(VENV) demo_out .pytest_cache .hypothesis
