@@ -61,6 +61,10 @@ def read_image(path) -> np.ndarray:
     if arr.ndim == 2:
         arr = arr[..., None]
     ext = os.path.splitext(path)[1].lower()
+    if ext == ".pfm":
+        # PFM stores scanlines bottom to top; OpenImageIO 3.2 returns them in
+        # file order (its writer is conformant), so flip to top-to-bottom here.
+        arr = arr[::-1].copy()
     if ext in _LDR or colorspace.lower() in ("srgb", "srgb_rec709_scene", "srgb:g22:rec709"):
         arr = _srgb_to_linear(arr)
     return arr
