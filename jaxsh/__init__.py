@@ -36,3 +36,51 @@ from ._rotation import (
     wigner_D_blocks as wigner_D_blocks,
     wigner_d_y as wigner_d_y,
 )
+from ._convolution import (
+    complex_to_real_coeffs as complex_to_real_coeffs,
+    convolve as convolve,
+    irradiance as irradiance,
+    real_to_complex_coeffs as real_to_complex_coeffs,
+)
+from ._spectra import (
+    lambertian_spectrum as lambertian_spectrum,
+    legendre_p as legendre_p,
+    microfacet_spectrum as microfacet_spectrum,
+    mirror_spectrum as mirror_spectrum,
+    phong_spectrum as phong_spectrum,
+    phong_spectrum_gaussian as phong_spectrum_gaussian,
+    radial_spectrum as radial_spectrum,
+    recoverable_orders as recoverable_orders,
+    torrance_sparrow_spectrum as torrance_sparrow_spectrum,
+)
+from ._lightfield import (
+    mirror_brdf_coefficients as mirror_brdf_coefficients,
+    brdf_incident_coefficients as brdf_incident_coefficients,
+    brdf_sh_coefficients as brdf_sh_coefficients,
+    factorize_light_field as factorize_light_field,
+    light_field_basis as light_field_basis,
+    light_field_coefficients as light_field_coefficients,
+    reflect_sh as reflect_sh,
+)
+from ._reference import reflect_quadrature as reflect_quadrature
+from ._reflectance import (
+    cook_torrance as cook_torrance,
+    fresnel_dielectric as fresnel_dielectric,
+    fresnel_normalized as fresnel_normalized,
+    half_vector as half_vector,
+    lafortune as lafortune,
+    lambertian as lambertian,
+    local_directions as local_directions,
+    mirror_direction as mirror_direction,
+    oren_nayar as oren_nayar,
+    phong as phong,
+    phong_transfer as phong_transfer,
+    reflect as reflect,
+    rusinkiewicz_angles as rusinkiewicz_angles,
+    rusinkiewicz_directions as rusinkiewicz_directions,
+    tangent_frame as tangent_frame,
+    torrance_sparrow as torrance_sparrow,
+    uvw as uvw,
+    uvw_from_directions as uvw_from_directions,
+    ward_isotropic as ward_isotropic,
+)

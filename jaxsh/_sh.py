@@ -33,9 +33,18 @@ from jaxtyping import Array, Complex, Float
 from ._checks import check_dirs, check_lmax
 from ._indexing import sh_degrees, sh_orders
 
-# Band limits up to this value use a fully unrolled expression (one fused
-# kernel); larger ones a `lax.scan` over l (bounded compile time).
+# Band limits up to this value use the unrolled, chunked evaluation
+# (`_basis_blocked` inside `_real_sh_chunked`); larger ones a `lax.scan` over l
+# (bounded compile time).
 _UNROLL_MAX = 20
+
+# Chunked evaluation: points are processed `_CHUNK` at a time in a
+# `lax.fori_loop` so that all intermediates stay in cache; inside a chunk the
+# points are laid out as (`_CHUNK // _BLOCK`, rows, `_BLOCK`) so that every
+# row operation is vectorized over `_BLOCK` points and the final transpose to
+# (points, coefficients) only strides over `_BLOCK * itemsize` bytes.
+_CHUNK = 2048
+_BLOCK = 32
 
 
 def _diag_constants(lmax: int) -> np.ndarray:
@@ -141,11 +150,84 @@ def _basis_scan(x, y, z, lmax: int):
     return q[ls, np.abs(ms)] * trig[ms + lmax]
 
 
+def _basis_blocked(unit, lmax: int, block: int = _BLOCK):
+    """Real SH of unit vectors (C, 3) -> (C, n_coeffs), vectorized per l.
+
+    The same recurrence as `_basis_unrolled`, but with arrays shaped
+    (C // block, rows, block): one (l+1)-row slab of $\\bar q_l^m$ per degree
+    (materialized with `optimization_barrier`, so XLA does not re-evaluate the
+    recurrence chain for every output element), one slab of the
+    $\\mathrm{Re}/\\mathrm{Im}\\,(x+iy)^m$ for m = -lmax..lmax, and one product
+    per degree, assembled in flat order and transposed back once.
+    """
+    n = lmax + 1
+    dtype = unit.dtype
+    c_pts = unit.shape[0]
+    if c_pts % block:
+        block = c_pts
+    g = c_pts // block
+    a, b, d = _recurrence_tables(lmax)
+    ut = unit.reshape(g, block, 3).transpose(0, 2, 1)  # (g, 3, block)
+    x, y, z = ut[:, 0:1], ut[:, 1:2], ut[:, 2:3]  # (g, 1, block)
+
+    def col(v):
+        return jnp.asarray(np.asarray(v), dtype)[None, :, None]
+
+    c = [jnp.ones_like(x)]
+    s = [jnp.zeros_like(x)]
+    for m in range(1, n):
+        c.append(x * c[m - 1] - y * s[m - 1])
+        s.append(x * s[m - 1] + y * c[m - 1])
+    trig = jnp.concatenate(s[1:][::-1] + c, axis=1)  # rows m = -lmax..lmax
+    trig = jax.lax.optimization_barrier(trig)
+    qs = []
+    q1 = q2 = None
+    for l in range(n):
+        parts = []
+        if l >= 2:
+            parts.append(col(a[l, : l - 1]) * (z * q1[:, : l - 1]) - col(b[l, : l - 1]) * q2[:, : l - 1])
+        if l >= 1:
+            parts.append(float(a[l, l - 1]) * (z * q1[:, l - 1 : l]))
+        parts.append(jnp.full((g, 1, block), float(d[l, l]), dtype))
+        ql = jnp.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
+        ql = jax.lax.optimization_barrier(ql)  # rows m = 0..l
+        qs.append(ql)
+        q2, q1 = q1, ql
+    rows = []
+    for l in range(n):
+        ql = qs[l]
+        if l > 0:
+            rows.append(ql[:, 1 : l + 1][:, ::-1] * trig[:, lmax - l : lmax])
+        rows.append(ql[:, : l + 1] * trig[:, lmax : lmax + l + 1])
+    out = jnp.concatenate(rows, axis=1)  # (g, n_coeffs, block)
+    return out.transpose(0, 2, 1).reshape(c_pts, n * n)
+
+
+def _real_sh_chunked(unit, lmax: int, chunk: int = _CHUNK):
+    """`_basis_blocked` over chunks of `chunk` points (a `fori_loop`)."""
+    n_pts = unit.shape[0]
+    if n_pts == 0:
+        return jnp.zeros((0, (lmax + 1) ** 2), unit.dtype)
+    if n_pts <= chunk:
+        return _basis_blocked(unit, lmax)
+    n_chunks = -(-n_pts // chunk)
+
+    def body(i, out):
+        # The last chunk is shifted back to end at n_pts (it overlaps the
+        # previous one; the overlap is recomputed identically).
+        start = jnp.minimum(i * chunk, n_pts - chunk)
+        u = jax.lax.dynamic_slice_in_dim(unit, start, chunk, 0)
+        return jax.lax.dynamic_update_slice_in_dim(out, _basis_blocked(u, lmax), start, 0)
+
+    out = jnp.zeros((n_pts, (lmax + 1) ** 2), unit.dtype)
+    return jax.lax.fori_loop(0, n_chunks, body, out)
+
+
 def _real_sh_flat(unit, lmax: int):
     """Real SH of unit vectors (N, 3) -> (N, n_coeffs)."""
-    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
     if lmax <= _UNROLL_MAX:
-        return jnp.stack(_basis_unrolled(x, y, z, lmax), axis=-1)
+        return _real_sh_chunked(unit, lmax)
+    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
     return _basis_scan(x, y, z, lmax).T
 
 
