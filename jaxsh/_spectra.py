@@ -85,7 +85,7 @@ def phong_spectrum(s: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch
 @eqx.filter_jit
 def _phong_spectrum(s, lmax):
     s = eqx.error_if(s, jnp.any(s <= -1), "`s` must be > -1 (Phong exponent)")
-    l = jnp.arange(lmax + 1, dtype=s.dtype)
+    l = jnp.arange(lmax + 1, dtype=s.dtype).reshape((1,) * s.ndim + (-1,))
     sb = s[..., None]
     logc = jnp.log(sb + 1) + 0.5 * math.log(math.pi) + gammaln(sb + 1) - (sb + 1) * math.log(2.0)
     logr, sign = _rgamma_log_sign(1.0 + (sb - l) / 2)
@@ -99,7 +99,7 @@ def phong_spectrum_gaussian(s: Float[Array, "*batch"], lmax: int) -> Float[Array
     """
     s = as_float_array(s, "s")
     lmax = check_lmax(lmax)
-    l = jnp.arange(lmax + 1, dtype=s.dtype)
+    l = jnp.arange(lmax + 1, dtype=s.dtype).reshape((1,) * s.ndim + (-1,))
     return jnp.exp(-(l * l) / (2 * s[..., None]))
 
 
@@ -111,7 +111,7 @@ def microfacet_spectrum(sigma: Float[Array, "*batch"], lmax: int) -> Float[Array
     """
     sigma = as_float_array(sigma, "sigma")
     lmax = check_lmax(lmax)
-    l = jnp.arange(lmax + 1, dtype=sigma.dtype)
+    l = jnp.arange(lmax + 1, dtype=sigma.dtype).reshape((1,) * sigma.ndim + (-1,))
     return jnp.exp(-((sigma[..., None] * l) ** 2))
 
 

@@ -430,3 +430,18 @@ def test_library_models_frequency_vs_brute_force(rng, model):
     # Both sides are quadratures of the same integrand; measured differences: 4e-16 (Torrance-Sparrow),
     # 7e-10 (Cook-Torrance), 1.3e-7 (Oren-Nayar, whose max(0, cos dphi) kink slows the azimuthal rule).
     assert abs(pred - ref) < 1e-5 * (abs(ref) + 1)
+
+
+def test_spectra_batch_and_float32():
+    s = np.array([[2.0, 10.0], [50.0, 0.5]])
+    a = jaxsh.phong_spectrum(s, 5)
+    assert a.shape == (2, 2, 6)
+    np.testing.assert_allclose(a[1, 0], jaxsh.phong_spectrum(jnp.asarray(50.0), 5), atol=1e-15)
+    a32 = jaxsh.phong_spectrum(s.astype(np.float32), 5)
+    assert a32.dtype == jnp.float32
+    assert np.abs(np.asarray(a32, np.float64) - np.asarray(a)).max() < 1e-5
+    assert jaxsh.microfacet_spectrum(np.float32(0.1), 4).dtype == jnp.float32
+    assert jaxsh.microfacet_spectrum(np.array([0.1, 0.2]), 4).shape == (2, 5)
+    assert jaxsh.lambertian_spectrum(4, dtype=jnp.float32).dtype == jnp.float32
+    e = jaxsh.irradiance(np.ones((9, 3), np.float32), np.array([[0, 0, 1.0]], np.float32))
+    assert e.dtype == jnp.float32 and e.shape == (1, 3)
