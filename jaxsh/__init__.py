@@ -84,3 +84,11 @@ from ._reflectance import (
     uvw_from_directions as uvw_from_directions,
     ward_isotropic as ward_isotropic,
 )
+from ._lighting import (
+    directional_light_sh as directional_light_sh,
+    disk_energy as disk_energy,
+    disk_light_sh as disk_light_sh,
+    filter_lighting_microfacet as filter_lighting_microfacet,
+    is_fast_source as is_fast_source,
+)
+from ._render import Components as Components, render_practical as render_practical, render_reference as render_reference

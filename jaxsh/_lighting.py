@@ -1,0 +1,104 @@
+"""Distant lighting: directional and disk (area) sources, environment maps, SH lighting.
+
+All lighting is distant and expressed in the world frame (+z up). A
+directional source is a direction `d` (unit, from the object towards the
+light, the $\\omega_i$ of the papers) and an `energy` $L_j$: the irradiance it
+delivers on a surface facing it — its radiance integrated over its solid
+angle (R&H eq. 23's "total energy"). A disk source has a centre direction,
+an angular radius $r$ and a uniform radiance; its energy is
+$2\\pi(1-\\cos r)\\cdot$radiance.
+
+Slow/fast split (R&H sec. 5.3): compact sources much narrower than the
+BRDF lobe σ are "fast" (delta functions carrying their energy, rendered by
+eq. 23); everything else is "slow" lighting, represented in SH, filtered by
+the microfacet spectrum for $B_{s,slow}$ (eq. 22).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._checks import as_float_array, check_dirs, check_lmax
+from ._convolution import convolve
+from ._indexing import sh_degrees
+from ._sh import _real_sh_flat, _unit_vectors
+from ._spectra import legendre_p, microfacet_spectrum
+
+
+def _energy(energy, n_sources: int, name: str):
+    energy = as_float_array(energy, name)
+    if energy.ndim == 1:
+        energy = energy[:, None]
+    if energy.ndim != 2 or energy.shape[0] != n_sources:
+        raise ValueError(f"`{name}` must have shape ({n_sources},) or ({n_sources}, C), got {tuple(energy.shape)}")
+    return energy
+
+
+def directional_light_sh(directions: Float[Array, "J 3"], energy: Float[Array, "J *C"], lmax: int) -> Float[Array, "n_coeffs C"]:
+    """SH coefficients of delta sources: $L_{lm} = \\sum_j L_j Y_{lm}(\\omega_j)$ (R&H sec. 5.2).
+
+    **Arguments:** `directions` `(J, 3)`; `energy` `(J,)` or `(J, C)`; `lmax`.
+    **Returns:** `(n_coeffs, C)`.
+    """
+    directions = check_dirs(directions, "directions")
+    if directions.ndim != 2:
+        raise ValueError(f"`directions` must have shape (J, 3), got {tuple(directions.shape)}")
+    lmax = check_lmax(lmax)
+    e = _energy(energy, directions.shape[0], "energy")
+    y = _real_sh_flat(_unit_vectors(directions), lmax)  # (J, n)
+    return y.T @ e.astype(y.dtype)
+
+
+def disk_light_sh(
+    direction: Float[Array, "3"], angular_radius: Float[Array, ""], radiance: Float[Array, "*C"], lmax: int
+) -> Float[Array, "n_coeffs *C"]:
+    """SH coefficients of a uniform disk (spherical cap) source, in closed form.
+
+    About its own axis the cap is zonal: $L^{z}_{l} = 2\\pi\\,\\mathrm{rad}\\int_{\\cos r}^1
+    Y_{l0}\\,du = \\mathrm{rad}\\,\\sqrt{\\pi/(2l+1)}\\,[P_{l-1}(\\cos r) - P_{l+1}(\\cos r)]$
+    ($l \\ge 1$; $L^z_0 = \\mathrm{rad}\\,2\\pi(1-\\cos r)/\\sqrt{4\\pi}$), and a zonal
+    function rotated to axis $d$ has $L_{lm} = \\Lambda_l L^z_l Y_{lm}(d)$.
+    Differentiable in the direction, radius and radiance.
+    """
+    direction = check_dirs(direction, "direction")
+    if direction.shape != (3,):
+        raise ValueError(f"`direction` must have shape (3,), got {tuple(direction.shape)}")
+    r = as_float_array(angular_radius, "angular_radius")
+    rad = as_float_array(radiance, "radiance")
+    lmax = check_lmax(lmax)
+    dt = jnp.result_type(direction.dtype, r.dtype, rad.dtype)
+    u = jnp.cos(r).astype(dt)
+    p = legendre_p(u, lmax + 1)  # P_0 .. P_{lmax+1}
+    l = np.arange(lmax + 1)
+    pm1 = jnp.concatenate([jnp.ones((1,), dt), p[: lmax]])  # P_{l-1}, with a dummy for l = 0
+    zon = jnp.sqrt(jnp.pi / (2 * l + 1.0)).astype(dt) * (pm1 - p[1 : lmax + 2])
+    zon = zon.at[0].set(2 * jnp.pi * (1 - u) / jnp.sqrt(4 * jnp.pi))
+    lam = jnp.sqrt(4 * jnp.pi / (2 * l + 1.0)).astype(dt)
+    y = _real_sh_flat(_unit_vectors(direction[None].astype(dt)), lmax)[0]
+    coef = (lam * zon)[sh_degrees(lmax)] * y  # per unit radiance
+    if rad.ndim == 0:
+        return coef * rad.astype(dt)
+    return coef[:, None] * rad.astype(dt)[None, :]
+
+
+def disk_energy(angular_radius, radiance):
+    """Total energy of a disk source: $2\\pi(1-\\cos r)$ × radiance."""
+    r = as_float_array(angular_radius, "angular_radius")
+    return 2 * jnp.pi * (1 - jnp.cos(r)) * as_float_array(radiance, "radiance")
+
+
+def is_fast_source(angular_radius, sigma, ratio: float = 0.25):
+    """R&H sec. 5.3: a compact source is "fast" when its angular radius is ≪ σ (here `< ratio·σ`)."""
+    return as_float_array(angular_radius, "angular_radius") < ratio * as_float_array(sigma, "sigma")
+
+
+def filter_lighting_microfacet(coeffs: Float[Array, "n_coeffs *C"], sigma: Float[Array, ""]) -> Float[Array, "n_coeffs *C"]:
+    """$L^{slow}_{lm} = e^{-(\\sigma l)^2} L_{lm}$: the lighting a microfacet lobe sees (R&H eqs. 17, 20, 22)."""
+    coeffs = as_float_array(coeffs, "coeffs")
+    lmax = int(round(np.sqrt(coeffs.shape[0]))) - 1
+    a = microfacet_spectrum(as_float_array(sigma, "sigma"), lmax)
+    return convolve(coeffs, a, channels=coeffs.ndim == 2)
