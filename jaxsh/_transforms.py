@@ -29,27 +29,40 @@ from ._sh import _real_sh_flat, _recurrence_tables, _unit_vectors
 def _legendre_scan(theta: np.ndarray, lmax: int, dtype, body, init):
     r"""Run `body` over l = 0..lmax with the Legendre rows of that l.
 
-    `body(acc, l_index, p_l)` receives $p_l[m, h] = \sqrt{2-\delta_{m0}}\,
-    \bar P_l^m(\cos\theta_h)$ (zero for m > l). Same normalized recurrence as
-    the basis (`_sh`), seeded with $\bar q_m^m \sin^m\theta$ so no
-    $1/\sin^m$ factor is ever formed (entries that underflow are below
-    1e-300 and exactly negligible). Never materializes the whole
-    `(l, m, h)` table: the transforms contract each row as it is made.
+    `body(acc, parity, l, p_l)` receives the static parity of l (0 or 1, a
+    Python int), the traced l and $p_l[m, h] = \sqrt{2-\delta_{m0}}\,
+    \bar P_l^m(\cos\theta_h)$ (zero for m > l), and returns `(acc, out)`.
+    Same normalized recurrence as the basis (`_sh`), seeded with
+    $\bar q_m^m \sin^m\theta$ so no $1/\sin^m$ factor is ever formed (entries
+    that underflow are below 1e-300 and exactly negligible). Never
+    materializes the whole `(l, m, h)` table: the transforms contract each
+    row as it is made. The scan runs over pairs (l even, l odd) so that the
+    bodies can specialize on the parity statically; a padding step beyond
+    lmax has $p_l = 0$. The outputs are stacked as `(lmax+1, ...)`.
     """
-    a, b, d = (jnp.asarray(t, dtype) for t in _recurrence_tables(lmax))
+    a, b, d = (np.asarray(t) for t in _recurrence_tables(lmax))
+    npairs = (lmax + 2) // 2
+    pad = 2 * npairs - (lmax + 1)
+    a, b, d = (jnp.asarray(np.pad(t, ((0, pad), (0, 0))).reshape(npairs, 2, -1), dtype) for t in (a, b, d))
     z = jnp.asarray(np.cos(theta), dtype)
     m = np.arange(lmax + 1)
     sinpow = jnp.asarray(np.sin(theta)[None, :] ** m[:, None], dtype)  # (m, h)
 
     def step(carry, xs):
         q1, q2, acc = carry
-        al, bl, dl, l = xs
-        ql = al[:, None] * (z[None, :] * q1) - bl[:, None] * q2 + dl[:, None] * sinpow
-        acc, out = body(acc, l, ql)
-        return (ql, q1, acc), out
+        al, bl, dl, l0 = xs
+        outs = []
+        for par in (0, 1):
+            ql = al[par][:, None] * (z[None, :] * q1) - bl[par][:, None] * q2 + dl[par][:, None] * sinpow
+            acc, out = body(acc, par, l0 + par, ql)
+            outs.append(out)
+            q1, q2 = ql, q1
+        return (q1, q2, acc), outs
 
     zeros = jnp.zeros_like(sinpow)
-    (_, _, acc), outs = jax.lax.scan(step, (zeros, zeros, init), (a, b, d, jnp.arange(lmax + 1)))
+    (_, _, acc), outs = jax.lax.scan(step, (zeros, zeros, init), (a, b, d, jnp.arange(0, 2 * npairs, 2)))
+    if outs[0] is not None:
+        outs = jax.tree.map(lambda e, o: jnp.stack([e, o], axis=1).reshape((2 * npairs,) + e.shape[1:])[: lmax + 1], outs[0], outs[1])
     return acc, outs
 
 
@@ -59,12 +72,6 @@ def _half_rows(h: int):
     top = np.arange(hc)
     bot = h - 1 - top
     return hc, top, bot
-
-
-def _parity(lmax: int):
-    r"""(l + m) even, as an (l, m) boolean table: $\bar P_l^m(-z) = (-1)^{l+m}\bar P_l^m(z)$."""
-    l, m = np.meshgrid(np.arange(lmax + 1), np.arange(lmax + 1), indexing="ij")
-    return (l + m) % 2 == 0
 
 
 def _flat_gather_indices(lmax: int):
@@ -139,12 +146,15 @@ def _project(image, lmax):
         gbot = gbot.at[hc - 1].set(0.0)  # the equator row is its own mirror
     g_even = jnp.transpose(g[top] + gbot, (2, 0, 1))  # (M, Hc, 2C)
     g_odd = jnp.transpose(g[top] - gbot, (2, 0, 1))
+    # P_l^m(-z) = (-1)^{l+m} P_l^m(z): for even l the even-m rows pair with the even part, the odd-m
+    # rows with the odd part; for odd l the other way round. One contraction per (l, m).
+    m_even = jnp.asarray(np.arange(lmax + 1) % 2 == 0)[:, None, None]
+    g_for = (jnp.where(m_even, g_even, g_odd), jnp.where(m_even, g_odd, g_even))
 
-    def body(acc, l, pl):
-        return acc, (jnp.einsum("mh,mhk->mk", pl, g_even), jnp.einsum("mh,mhk->mk", pl, g_odd))
+    def body(acc, par, l, pl):
+        return acc, jnp.einsum("mh,mhk->mk", pl, g_for[par])
 
-    _, (out_e, out_o) = _legendre_scan(theta[:hc], lmax, dtype, body, None)
-    out = jnp.where(jnp.asarray(_parity(lmax))[:, :, None], out_e, out_o)  # (L, M, 2C)
+    _, out = _legendre_scan(theta[:hc], lmax, dtype, body, None)  # (L, M, 2C)
     nc = f.shape[-1]
     cre, cim = out[..., :nc], out[..., nc:]
     ls, am, neg = _flat_gather_indices(lmax)
@@ -195,17 +205,20 @@ def _synthesize(coeffs, lmax, h, w):
     b = c[negi] * vmask * jnp.asarray((m_idx > 0)[..., None], dtype)
     ab = jnp.concatenate([a, b], axis=-1)  # (L, M, 2C)
     hc, top, bot = _half_rows(h)
-    par = jnp.asarray(_parity(lmax), dtype)
+    ab = jnp.pad(ab, ((0, 1), (0, 0), (0, 0)))  # the padding step of the pair scan reads row lmax+1
 
-    def body(acc, l, pl):
-        even, odd = acc
-        coef = ab[l]  # (M, 2C)
-        pe = par[l][:, None]
-        term = pl[:, :, None] * coef[:, None, :]  # (M, Hc, 2C)
-        return (even + term * pe[:, :, None], odd + term * (1 - pe)[:, :, None]), None
+    def body(acc, par, l, pl):
+        term = pl[:, :, None] * ab[l][:, None, :]  # (M, Hc, 2C)
+        acc = list(acc)
+        acc[par] = acc[par] + term  # sums over even l and over odd l
+        return tuple(acc), None
 
     zero = jnp.zeros((n1, hc, ab.shape[-1]), dtype)
-    (even, odd), _ = _legendre_scan(theta[:hc], lmax, dtype, body, (zero, zero))
+    (sum_even_l, sum_odd_l), _ = _legendre_scan(theta[:hc], lmax, dtype, body, (zero, zero))
+    # even part in z: (l + m) even; odd part: (l + m) odd.
+    m_even = jnp.asarray(np.arange(n1) % 2 == 0)[:, None, None]
+    even = jnp.where(m_even, sum_even_l, sum_odd_l)
+    odd = jnp.where(m_even, sum_odd_l, sum_even_l)
     upper = even + odd
     lower = (even - odd)[:, ::-1]
     if h % 2:
