@@ -92,3 +92,18 @@ from ._lighting import (
     is_fast_source as is_fast_source,
 )
 from ._render import Components as Components, render_practical as render_practical, render_reference as render_reference
+from ._scene import (
+    GBuffer as GBuffer,
+    OrthographicCamera as OrthographicCamera,
+    PinholeCamera as PinholeCamera,
+    camera_rays as camera_rays,
+    directional_visibility as directional_visibility,
+    embree_available as embree_available,
+    hemisphere_quadrature as hemisphere_quadrature,
+    look_at as look_at,
+    mesh_gbuffer as mesh_gbuffer,
+    reflected_visibility as reflected_visibility,
+    sphere_gbuffer as sphere_gbuffer,
+    visibility_sh as visibility_sh,
+    visibility_weighted_irradiance as visibility_weighted_irradiance,
+)
