@@ -84,6 +84,7 @@ def render_practical(
     fast_visibility: Float[Array, "*batch J"] | None = None,
     reflected_visibility: Float[Array, "*batch"] | None = None,
     exact_fast_diffuse: bool = True,
+    mask: Float[Array, "*batch"] | None = None,
 ) -> Components:
     """The practical model of R&H 2001 eq. 24 per pixel (module docstring).
 
@@ -98,6 +99,10 @@ def render_practical(
     - `transfer`: optional `(..., 9)` visibility-weighted clamped-cosine
       transfer vectors (sec. 6.4); replaces the unshadowed irradiance.
     - `fast_visibility` `(..., J)`, `reflected_visibility` `(...)`: optional.
+    - `mask`: optional `(...)` bool, e.g. `GBuffer.mask`: pixels outside it
+      render as 0 and their normals/views are not read (a G-buffer's misses
+      carry zero normals). Without a mask, a zero or non-finite normal or
+      view is an error.
 
     **Returns:** `Components(diffuse, specular_slow, specular_fast, total)`.
     """
@@ -135,6 +140,13 @@ def render_practical(
     ks = _bcast(ks.astype(dt), batch, c)
     sigma = jnp.asarray(sigma, dt)
     fresnel = None if mu is None else jnp.asarray(mu, dt)
+    if mask is not None:
+        mask = jnp.broadcast_to(jnp.asarray(mask, bool), batch)
+        up = jnp.asarray([0.0, 0.0, 1.0], dt)
+        n = jnp.where(mask[..., None], n, up)
+        v = jnp.where(mask[..., None], v, up)
+        kd = jnp.where(mask[..., None], kd, 0.0)
+        ks = jnp.where(mask[..., None], ks, 0.0)
     return _render_practical(
         n, v, kd, ks, fresnel, sigma, slow_sh, fast_directions, fast_energy, transfer, fast_visibility,
         reflected_visibility, exact_fast_diffuse,
@@ -146,8 +158,8 @@ def _render_practical(n, v, kd, ks, mu, sigma, slow_sh, fdir, fen, transfer, fvi
     batch = n.shape[:-1]
     dt = n.dtype
     c = kd.shape[-1]
-    flat_n = _unit_vectors(n.reshape(-1, 3))
-    flat_v = _unit_vectors(v.reshape(-1, 3))
+    flat_n = _unit_vectors(n.reshape(-1, 3), "normals")
+    flat_v = _unit_vectors(v.reshape(-1, 3), "views")
     cos_o = jnp.sum(flat_n * flat_v, -1)
     visible = cos_o > 0
     cos_o_safe = jnp.where(visible, cos_o, 1.0)

@@ -79,11 +79,11 @@ def _recurrence_tables(lmax: int):
     return a, b, d
 
 
-def _unit_vectors(dirs):
+def _unit_vectors(dirs, name: str = "dirs"):
     """Normalize; a zero, infinite or NaN direction is an error (checked in jit)."""
     norm2 = jnp.sum(dirs * dirs, axis=-1, keepdims=True)
     bad = jnp.any(~(jnp.isfinite(norm2) & (norm2 > 0)))
-    norm2 = eqx.error_if(norm2, bad, "`dirs` contains a zero-length or non-finite direction")
+    norm2 = eqx.error_if(norm2, bad, f"`{name}` contains a zero-length or non-finite direction")
     return dirs * jax.lax.rsqrt(norm2)
 
 

@@ -145,3 +145,19 @@ def test_render_errors():
         jaxsh.render_practical(np.ones((4, 2)), V, KD, KS, 1.5, 0.1, fast_directions=np.ones((1, 3)), fast_energy=np.ones((1, 3)))
     with pytest.raises(ValueError, match="lighting"):
         jaxsh.render_reference(np.array([0, 0, 1.0]), V, KD, KS, 1.5, 0.1)
+
+
+def test_render_a_gbuffer_with_its_mask():
+    """The README example: a sphere G-buffer (misses have zero normals) rendered with its mask."""
+    cam = jaxsh.OrthographicCamera(scale=0.05, width=48, height=48, cam_to_world=jaxsh.look_at(eye=[0, 0, 5.0], target=[0, 0, 0]))
+    g = jaxsh.sphere_gbuffer(cam, center=[0, 0, 0.0], radius=1.0)
+    slow = jaxsh.disk_light_sh(D1, R1, L1, 20)
+    b = jaxsh.render_practical(g.normal, g.view, KD, KS, 1.5, 0.2, slow_sh=slow, fast_directions=D2[None], fast_energy=E2[None], mask=g.mask)
+    assert b.total.shape == (48, 48, 3)
+    assert np.all(np.asarray(b.total)[~np.asarray(g.mask)] == 0)
+    assert np.all(np.isfinite(np.asarray(b.total))) and float(b.total.max()) > 0
+    m = np.asarray(g.mask)
+    ref = jaxsh.render_practical(np.asarray(g.normal)[m], np.asarray(g.view)[m], KD, KS, 1.5, 0.2, slow_sh=slow, fast_directions=D2[None], fast_energy=E2[None])
+    np.testing.assert_allclose(np.asarray(b.total)[m], ref.total, atol=1e-13)
+    with pytest.raises(Exception, match="normals"):
+        jaxsh.render_practical(g.normal, g.view, KD, KS, 1.5, 0.2, slow_sh=slow).total.block_until_ready()
