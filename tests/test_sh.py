@@ -111,16 +111,35 @@ def test_complex_sh_matches_scipy(rng):
     np.testing.assert_allclose(got, scipy_complex_sh(d, 12), rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("lmax", [4, 16, 30])
+@pytest.mark.parametrize("lmax", [4, 12, 13, 16, 30])
 def test_float32_accuracy(rng, lmax):
-    """float32 stays within 1e-5 of the exact values at the float32 inputs up to l = 30."""
-    d32 = _test_dirs(rng, 300).astype(np.float32)
+    """float32 stays within 1e-5 of the exact values at the float32 inputs up to l = 30, poles included."""
+    t = np.linspace(0, 0.08, 300)
+    ph = rng.uniform(0, 2 * np.pi, 300)
+    pole = np.stack([np.sin(t) * np.cos(ph), np.sin(t) * np.sin(ph), np.cos(t)], -1)
+    d32 = np.concatenate([_test_dirs(rng, 2000), pole, -pole]).astype(np.float32)
     got = jaxsh.real_sh(d32, lmax)
     assert got.dtype == jnp.float32
     ref = scipy_real_sh(d32.astype(np.float64), lmax)
     assert np.abs(np.asarray(got, np.float64) - ref).max() <= 1e-5
     gotc = jaxsh.complex_sh(d32, lmax)
     assert gotc.dtype == jnp.complex64
+
+
+def test_float32_compensated_path_is_needed(rng):
+    """The plain float32 recurrence would miss 1e-5 near the poles at l = 30 (why the compensated path exists)."""
+    from jaxsh import _sh
+
+    t = np.linspace(0, 0.05, 200)
+    pole = np.stack([np.sin(t), 0 * t, np.cos(t)], -1).astype(np.float32)
+    plain = np.asarray(_sh._real_sh_flat(_sh._unit_vectors(jnp.asarray(pole)), 12), np.float64)
+    np.testing.assert_allclose(plain, scipy_real_sh(pole.astype(np.float64), 12), atol=1e-5)
+    x, y, zh, zl = _sh._df_unit(jnp.asarray(pole))
+    plain30 = np.asarray(_sh._basis_scan(x, y, zh, 30).T, np.float64)
+    comp30 = np.asarray(_sh._basis_compensated(x, y, zh, 30, zl).T, np.float64)
+    ref = scipy_real_sh(pole.astype(np.float64), 30)
+    assert np.abs(plain30 - ref).max() > 1e-5
+    assert np.abs(comp30 - ref).max() < 5e-6
 
 
 def test_unnormalized_directions_are_normalized(rng):
