@@ -50,7 +50,7 @@ class Components(NamedTuple):
     total: Array
 
 
-def _channels(x, name, batch_nd):
+def _channels(x, name):
     x = as_float_array(x, name)
     if x.ndim == 0:
         x = x[None]
@@ -62,11 +62,6 @@ def _bcast(x, batch, c):
     if x.ndim == 1:
         x = x.reshape((1,) * len(batch) + x.shape)
     return jnp.broadcast_to(x, batch + (c,))
-
-
-def _scalar_field(x, batch):
-    x = jnp.asarray(x)
-    return jnp.broadcast_to(x.reshape(x.shape + (1,) * 0), batch) if x.ndim else jnp.broadcast_to(x, batch)
 
 
 def render_practical(
@@ -109,8 +104,8 @@ def render_practical(
     normals = check_dirs(normals, "normals")
     views = check_dirs(views, "views")
     batch = jnp.broadcast_shapes(normals.shape[:-1], views.shape[:-1])
-    kd = _channels(kd, "kd", len(batch))
-    ks = _channels(ks, "ks", len(batch))
+    kd = _channels(kd, "kd")
+    ks = _channels(ks, "ks")
     c = max(kd.shape[-1], ks.shape[-1])
     if slow_sh is None and fast_directions is None:
         raise ValueError("give the lighting: `slow_sh` and/or `fast_directions` with `fast_energy`")
@@ -270,8 +265,8 @@ def render_reference(
     normals = check_dirs(normals, "normals")
     views = check_dirs(views, "views")
     batch = jnp.broadcast_shapes(normals.shape[:-1], views.shape[:-1])
-    kd = _channels(kd, "kd", len(batch))
-    ks = _channels(ks, "ks", len(batch))
+    kd = _channels(kd, "kd")
+    ks = _channels(ks, "ks")
     dt = jnp.result_type(normals.dtype, views.dtype, kd.dtype, ks.dtype)
     dirs_all, rad_all = [], []
     c = max(kd.shape[-1], ks.shape[-1])

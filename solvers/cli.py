@@ -12,7 +12,12 @@ import time
 def _demo(args) -> int:
     import jax
 
-    jax.config.update("jax_enable_x64", True)  # the CLI is an application: it may choose precision
+    # The demo runs in float64, scoped to this call (no global flag is changed).
+    with jax.enable_x64(True):
+        return _demo_x64(args)
+
+
+def _demo_x64(args) -> int:
     import jax.numpy as jnp
     import numpy as np
 
