@@ -21,7 +21,7 @@ import numpy as np
 
 from ._grids import latlong_directions
 
-__all__ = ["read_image", "write_image", "read_envmap", "Y_UP_TO_Z_UP"]
+__all__ = ["read_image", "write_image", "read_envmap", "read_manifest", "read_mesh", "ManifestError", "Y_UP_TO_Z_UP"]
 
 #: Rotation taking a +y-up file frame to the library's +z-up frame: lib = M @ file.
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -206,3 +206,203 @@ def read_envmap(path, up: str = "+z", layout: str = "latlong", height: int | Non
     col = (uu + 1) / 2 * fw
     row = (1 - vv) / 2 * fh
     return _bilinear_clamp(img, col, row).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- capture manifests
+
+
+class ManifestError(ValueError):
+    """A capture manifest that cannot be used; the message names the file and the field."""
+
+
+def _field(d, key, where, path, kind=None, required=True, default=None):
+    if not isinstance(d, dict):
+        raise ManifestError(f"{path}: `{where}` must be an object")
+    if key not in d or d[key] is None:
+        if required:
+            raise ManifestError(f"{path}: missing field `{where}.{key}`")
+        return default
+    v = d[key]
+    if kind == "number":
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ManifestError(f"{path}: `{where}.{key}` must be a number, got {v!r}")
+        return float(v)
+    if kind == "string" and not isinstance(v, str):
+        raise ManifestError(f"{path}: `{where}.{key}` must be a string, got {v!r}")
+    return v
+
+
+def _array(v, shape, where, path):
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ManifestError(f"{path}: `{where}` must be numeric with shape {shape}") from None
+    if shape is not None and a.shape != shape:
+        raise ManifestError(f"{path}: `{where}` must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ManifestError(f"{path}: `{where}` has non-finite values")
+    return a
+
+
+def _rgb(v, where, path):
+    a = _array(v, None, where, path)
+    if a.shape == ():
+        return np.full(3, float(a))
+    if a.shape != (3,):
+        raise ManifestError(f"{path}: `{where}` must be a number or [r, g, b], got shape {a.shape}")
+    return a
+
+
+def read_manifest(path) -> dict:
+    """Read and validate a capture manifest (DESIGN.md, "Capture manifest").
+
+    Paths inside are resolved relative to the manifest. Returns a plain dict:
+
+    - `geometry`: `{"sphere": {"center": (3,), "radius": float}}` or `{"mesh": abs_path}`;
+    - `views`: list of `{"image": abs_path | None, "mask": abs_path | None, "camera": {...}}`
+      with the camera's `model` ("pinhole" or "orthographic"), its intrinsics,
+      `width`, `height` (from the camera block, else from the image when it
+      exists) and `cam_to_world` `(4, 4)`;
+    - `lighting`: None (unknown) or `{"envmap": abs_path | None, "up", "layout",
+      "directional": [{"direction": (3,) unit, "radiance": (3,)}]}`;
+    - `brdf`: None (unknown) or `{"model": "torrance_sparrow", "kd": (3,), "ks": (3,), "mu", "sigma"}`;
+    - `solve`: dict (options, e.g. `lighting_lmax`).
+
+    Every problem raises `ManifestError` (a `ValueError`) naming the file and the field.
+    """
+    import json
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"manifest not found: {path}")
+    try:
+        with open(path) as f:
+            raw = json.load(f)
+    except json.JSONDecodeError as e:
+        raise ManifestError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(raw, dict):
+        raise ManifestError(f"{path}: the manifest must be a JSON object")
+    base = os.path.dirname(os.path.abspath(path))
+
+    def resolve(p, where):
+        if not isinstance(p, str) or not p:
+            raise ManifestError(f"{path}: `{where}` must be a file name")
+        return os.path.normpath(os.path.join(base, p))
+
+    geo = _field(raw, "geometry", "", path)
+    if not isinstance(geo, dict) or len(set(geo) & {"mesh", "sphere"}) != 1:
+        raise ManifestError(f'{path}: `geometry` must have exactly one of "mesh" or "sphere"')
+    if "sphere" in geo:
+        sph = geo["sphere"]
+        center = _array(_field(sph, "center", "geometry.sphere", path), (3,), "geometry.sphere.center", path)
+        radius = _field(sph, "radius", "geometry.sphere", path, "number")
+        if radius <= 0:
+            raise ManifestError(f"{path}: `geometry.sphere.radius` must be > 0, got {radius}")
+        geometry = {"sphere": {"center": center, "radius": radius}}
+    else:
+        mesh = resolve(geo["mesh"], "geometry.mesh")
+        if not os.path.exists(mesh):
+            raise ManifestError(f"{path}: `geometry.mesh` file not found: {mesh}")
+        geometry = {"mesh": mesh}
+
+    views_raw = _field(raw, "views", "", path)
+    if not isinstance(views_raw, list) or not views_raw:
+        raise ManifestError(f"{path}: `views` must be a non-empty list")
+    views = []
+    for k, v in enumerate(views_raw):
+        where = f"views[{k}]"
+        image = resolve(v["image"], f"{where}.image") if isinstance(v, dict) and v.get("image") else None
+        mask = resolve(v["mask"], f"{where}.mask") if isinstance(v, dict) and v.get("mask") else None
+        cam = _field(v, "camera", where, path)
+        model = _field(cam, "model", f"{where}.camera", path, "string")
+        cw = f"{where}.camera"
+        c = {"model": model}
+        if model == "pinhole":
+            for key in ("fx", "fy", "cx", "cy"):
+                c[key] = _field(cam, key, cw, path, "number")
+            if c["fx"] <= 0 or c["fy"] <= 0:
+                raise ManifestError(f"{path}: `{cw}.fx` and `{cw}.fy` must be > 0")
+        elif model == "orthographic":
+            c["scale"] = _field(cam, "scale", cw, path, "number")
+            if c["scale"] <= 0:
+                raise ManifestError(f"{path}: `{cw}.scale` must be > 0")
+        else:
+            raise ManifestError(f'{path}: `{cw}.model` must be "pinhole" or "orthographic", got {model!r}')
+        m = _array(_field(cam, "cam_to_world", cw, path), (4, 4), f"{cw}.cam_to_world", path)
+        rot = m[:3, :3]
+        if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6 or np.linalg.det(rot) < 0:
+            raise ManifestError(f"{path}: `{cw}.cam_to_world` must hold a rotation (orthonormal, det +1)")
+        c["cam_to_world"] = m
+        w = _field(cam, "width", cw, path, "number", required=False)
+        h = _field(cam, "height", cw, path, "number", required=False)
+        if (w is None or h is None) and image is not None and os.path.exists(image):
+            img = read_image(image)
+            h, w = img.shape[:2]
+        if w is None or h is None:
+            raise ManifestError(f"{path}: `{cw}.width`/`height` are needed (or an existing `{where}.image`)")
+        c["width"], c["height"] = int(w), int(h)
+        views.append({"image": image, "mask": mask, "camera": c})
+
+    lighting = None
+    lraw = raw.get("lighting")
+    if lraw is not None:
+        if not isinstance(lraw, dict):
+            raise ManifestError(f"{path}: `lighting` must be an object or null")
+        env = resolve(lraw["envmap"], "lighting.envmap") if lraw.get("envmap") else None
+        if env is not None and not os.path.exists(env):
+            raise ManifestError(f"{path}: `lighting.envmap` file not found: {env}")
+        up = lraw.get("up", "+z")
+        layout = lraw.get("layout", "latlong")
+        if up not in ("+z", "+y"):
+            raise ManifestError(f'{path}: `lighting.up` must be "+z" or "+y", got {up!r}')
+        if layout not in ("latlong", "angular"):
+            raise ManifestError(f'{path}: `lighting.layout` must be "latlong" or "angular", got {layout!r}')
+        dirs = []
+        for j, s in enumerate(lraw.get("directional") or []):
+            d = _array(_field(s, "direction", f"lighting.directional[{j}]", path), (3,), f"lighting.directional[{j}].direction", path)
+            if np.linalg.norm(d) == 0:
+                raise ManifestError(f"{path}: `lighting.directional[{j}].direction` must be non-zero")
+            r = _rgb(_field(s, "radiance", f"lighting.directional[{j}]", path), f"lighting.directional[{j}].radiance", path)
+            dirs.append({"direction": d / np.linalg.norm(d), "radiance": r})
+        if env is None and not dirs:
+            raise ManifestError(f"{path}: `lighting` has neither an `envmap` nor `directional` sources")
+        lighting = {"envmap": env, "up": up, "layout": layout, "directional": dirs}
+
+    brdf = None
+    braw = raw.get("brdf")
+    if braw is not None:
+        model = _field(braw, "model", "brdf", path, "string")
+        if model != "torrance_sparrow":
+            raise ManifestError(f'{path}: `brdf.model` must be "torrance_sparrow", got {model!r}')
+        brdf = {
+            "model": model,
+            "kd": _rgb(_field(braw, "kd", "brdf", path), "brdf.kd", path),
+            "ks": _rgb(_field(braw, "ks", "brdf", path), "brdf.ks", path),
+            "mu": _field(braw, "mu", "brdf", path, "number"),
+            "sigma": _field(braw, "sigma", "brdf", path, "number"),
+        }
+        if not brdf["sigma"] > 0:
+            raise ManifestError(f"{path}: `brdf.sigma` must be > 0")
+        if not brdf["mu"] > 0:
+            raise ManifestError(f"{path}: `brdf.mu` must be > 0")
+    solve = raw.get("solve") or {}
+    if not isinstance(solve, dict):
+        raise ManifestError(f"{path}: `solve` must be an object")
+    return {"path": os.path.abspath(path), "geometry": geometry, "views": views, "lighting": lighting, "brdf": brdf, "solve": solve}
+
+
+def read_mesh(path):
+    """Load a triangle mesh (OBJ, PLY, STL, ...) with trimesh, positions only, merged vertices."""
+    import trimesh
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        loaded = trimesh.load(path, process=False, force="mesh")
+    except Exception as e:  # trimesh raises many types
+        raise ValueError(f"cannot read mesh {path!r}: {e}") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ValueError(f"mesh {path!r} has no triangles")
+    mesh = trimesh.Trimesh(vertices=np.asarray(loaded.vertices), faces=np.asarray(loaded.faces), process=True)
+    return mesh

@@ -104,6 +104,23 @@ def _demo_x64(args) -> int:
     return 0 if ok else 1
 
 
+def _render(args) -> int:
+    import jax
+
+    from jaxsh.io import ManifestError
+
+    from ._render_manifest import render_manifest
+
+    try:
+        with jax.enable_x64(True):
+            written = render_manifest(args.manifest, args.out)
+    except (ManifestError, FileNotFoundError, ValueError) as e:
+        print(f"jaxsh render: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {len(written)} files to {args.out}/")
+    return 0
+
+
 def _not_yet(name):
     def run(args) -> int:
         print(f"jaxsh {name}: not implemented yet in this version (see the open issues).", file=sys.stderr)
@@ -121,11 +138,14 @@ def main(argv=None) -> int:
     p.add_argument("--height", type=int, default=256, help="map height (width = 2 x height)")
     p.add_argument("--lmax", type=int, nargs="+", default=[2, 8, 32])
     p.set_defaults(func=_demo)
-    for name in ("fit", "render"):
-        q = sub.add_parser(name, help=f"{name} a capture manifest (not implemented yet)")
-        q.add_argument("manifest")
-        q.add_argument("--out")
-        q.set_defaults(func=_not_yet(name))
+    q = sub.add_parser("fit", help="recover lighting and BRDF from a capture manifest (not implemented yet)")
+    q.add_argument("manifest")
+    q.add_argument("--out")
+    q.set_defaults(func=_not_yet("fit"))
+    q = sub.add_parser("render", help="render every view of a manifest with given lighting and BRDF")
+    q.add_argument("manifest")
+    q.add_argument("--out", default="render_out", help="output directory (view_000.exr/.png, ...)")
+    q.set_defaults(func=_render)
     args = parser.parse_args(argv)
     return args.func(args)
 
