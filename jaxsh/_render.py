@@ -240,7 +240,8 @@ def render_reference(
     directional: tuple | None = None,
     disks: tuple | None = None,
     disk_nodes: tuple[int, int] = (48, 96),
-    visibility=None,
+    mesh=None,
+    points: Float[Array, "*batch 3"] | None = None,
     chunk: int = 4096,
 ) -> Float[Array, "*batch C"]:
     """Reference renderer: the reflection equation with the full Torrance-Sparrow BRDF.
@@ -257,11 +258,14 @@ def render_reference(
     **Arguments:** as `render_practical`, plus `envmap` `(H, W, C)` (world
     frame, DESIGN.md lat-long layout), `directional = (directions (J, 3),
     energy (J, C))`, `disks = (directions (K, 3), angular_radii (K,),
-    radiance (K, C))`, and `visibility(points_index, dirs) -> (N, M)` is not
-    supported yet (convex objects only: pass None).
+    radiance (K, C))`. For concave objects pass the occluding `mesh`
+    (trimesh) and the surface `points` `(..., 3)`: every quadrature direction
+    of every pixel is then ray-cast (`directional_visibility`; NumPy/embree,
+    N × M rays) and the integrand multiplied by its visibility (R&H sec. 6.4
+    shadowing, exactly).
     """
-    if visibility is not None:
-        raise NotImplementedError("render_reference: visibility for concave meshes is not implemented yet")
+    if (mesh is None) != (points is None):
+        raise ValueError("`mesh` and `points` go together (visibility needs both)")
     normals = check_dirs(normals, "normals")
     views = check_dirs(views, "views")
     batch = jnp.broadcast_shapes(normals.shape[:-1], views.shape[:-1])
@@ -305,29 +309,37 @@ def render_reference(
     v = jnp.broadcast_to(views, batch + (3,)).astype(dt).reshape(-1, 3)
     kd = _bcast(kd.astype(dt), batch, c).reshape(-1, c)
     ks = _bcast(ks.astype(dt), batch, c).reshape(-1, c)
-    out = _reference(n, v, kd, ks, None if mu is None else jnp.asarray(mu, dt), jnp.asarray(sigma, dt), sd, sl, chunk)
+    vis = None
+    if mesh is not None:
+        from ._scene import directional_visibility
+
+        pts = jnp.broadcast_to(jnp.asarray(points, dt), batch + (3,)).reshape(-1, 3)
+        vis = jnp.asarray(directional_visibility(mesh, np.asarray(pts), np.asarray(n), np.asarray(sd)), dt)
+    out = _reference(n, v, kd, ks, None if mu is None else jnp.asarray(mu, dt), jnp.asarray(sigma, dt), sd, sl, vis, chunk)
     return out.reshape(batch + (c,))
 
 
 @eqx.filter_jit
-def _reference(n, v, kd, ks, mu, sigma, sd, sl, chunk):
+def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk):
     npx = n.shape[0]
     pad = (-npx) % chunk if npx > chunk else 0
     size = chunk if npx > chunk else npx
 
     def one_chunk(args):
-        nn, vv, kkd, kks = args
+        nn, vv, kkd, kks, vv_is = args
         wi = jnp.broadcast_to(sd[None], (nn.shape[0],) + sd.shape)
         wo = jnp.broadcast_to(vv[:, None, :], wi.shape)
         nb = jnp.broadcast_to(nn[:, None, :], wi.shape)
         spec = torrance_sparrow(wi, wo, nb, 0.0, 1.0, mu, sigma)  # F S / (4 cos cos), 0 below horizons
-        cos_i = jnp.maximum(jnp.sum(wi * nb, -1), 0.0)
+        cos_i = jnp.maximum(jnp.sum(wi * nb, -1), 0.0) * vv_is
         cos_o = jnp.sum(nn * vv, -1)
         diff = jnp.where((cos_o > 0)[:, None], cos_i, 0.0) @ sl  # (n, C)
         spc = (spec * cos_i) @ sl
         return kkd * diff + kks * spc
 
-    arrs = [jnp.pad(a, ((0, pad), (0, 0))) for a in (n, v, kd, ks)]
+    if vis is None:
+        vis = jnp.ones((npx, sd.shape[0]), n.dtype)
+    arrs = [jnp.pad(a, ((0, pad), (0, 0))) for a in (n, v, kd, ks, vis)]
     if pad == 0 and npx <= chunk:
         return one_chunk(arrs)
     nch = arrs[0].shape[0] // size

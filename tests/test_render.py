@@ -161,3 +161,56 @@ def test_render_a_gbuffer_with_its_mask():
     np.testing.assert_allclose(np.asarray(b.total)[m], ref.total, atol=1e-13)
     with pytest.raises(Exception, match="normals"):
         jaxsh.render_practical(g.normal, g.view, KD, KS, 1.5, 0.2, slow_sh=slow).total.block_until_ready()
+
+
+def _floor_and_wall():
+    import trimesh
+
+    box = trimesh.creation.box(extents=[2.0, 2.0, 0.2])
+    wall = trimesh.creation.box(extents=[0.2, 2.0, 1.0])
+    wall.apply_translation([0.0, 0.0, 0.6])
+    return trimesh.util.concatenate([box, wall])
+
+
+def test_reference_with_mesh_visibility_on_a_convex_object():
+    """On a convex mesh the only occlusion is the horizon, which the BRDF already zeroes."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    cam = jaxsh.OrthographicCamera(0.08, 24, 24, jaxsh.look_at(np.array([0, 0, 4.0]), np.zeros(3), np.array([0, 1.0, 0])))
+    g = jaxsh.mesh_gbuffer(cam, mesh, smooth=False)
+    m = np.asarray(g.mask)
+    pts, nrm, vw = (np.asarray(a)[m] for a in (g.position, g.normal, g.view))
+    light = dict(disks=(D1[None], np.array([R1]), L1[None]), directional=(D2[None], E2[None]), disk_nodes=(16, 32))
+    a = np.asarray(jaxsh.render_reference(nrm, vw, KD, KS, 1.5, 0.2, mesh=mesh, points=pts, **light))
+    b = np.asarray(jaxsh.render_reference(nrm, vw, KD, KS, 1.5, 0.2, **light))
+    np.testing.assert_allclose(a, b, atol=1e-12)
+    with pytest.raises(ValueError, match="mesh"):
+        jaxsh.render_reference(nrm, vw, KD, KS, 1.5, 0.2, mesh=mesh, **light)
+
+
+def test_practical_model_with_shadows_vs_reference_on_concave_mesh():
+    """Floor + wall (R&H sec. 6.4): visibility terms bring the model to the ray-traced reference.
+
+    Measured (40x40 view, 36 % of pixels shadowed): 3.8 % relative RMS with the visibility terms
+    (9-term transfer vectors, binary shadow of the sun and of the mirror direction), 77 % without.
+    """
+    mesh = _floor_and_wall()
+    cam = jaxsh.OrthographicCamera(0.07, 28, 28, jaxsh.look_at(np.array([0.3, -2.0, 4.0]), np.zeros(3), np.array([0, 0, 1.0])))
+    g = jaxsh.mesh_gbuffer(cam, mesh, smooth=False)
+    m = np.asarray(g.mask)
+    pts, nrm, vw = (np.asarray(a)[m] for a in (g.position, g.normal, g.view))
+    d1 = np.array([0.7, 0.2, 0.69]) / np.linalg.norm([0.7, 0.2, 0.69])
+    d2 = np.array([-0.6, 0.3, 0.74]) / np.linalg.norm([-0.6, 0.3, 0.74])
+    ks = np.array([0.3, 0.3, 0.3])
+    ref = np.asarray(jaxsh.render_reference(nrm, vw, KD, ks, 1.5, 0.2, disks=(d1[None], np.array([R1]), L1[None]), directional=(d2[None], E2[None]), disk_nodes=(24, 48), mesh=mesh, points=pts))
+    slow = jaxsh.disk_light_sh(d1, R1, L1, 20)
+    t = np.asarray(jaxsh.visibility_sh(mesh, pts, nrm, 2, n_dirs=1024))
+    fv = np.asarray(jaxsh.directional_visibility(mesh, pts, nrm, d2[None]))
+    rv = np.asarray(jaxsh.reflected_visibility(mesh, pts, nrm, vw))
+    common = dict(slow_sh=slow, fast_directions=d2[None], fast_energy=E2[None])
+    with_vis = np.asarray(jaxsh.render_practical(nrm, vw, KD, ks, 1.5, 0.2, transfer=t, fast_visibility=fv, reflected_visibility=rv, **common).total)
+    without = np.asarray(jaxsh.render_practical(nrm, vw, KD, ks, 1.5, 0.2, **common).total)
+    rms = lambda x: np.sqrt(np.mean((x - ref) ** 2)) / np.sqrt(np.mean(ref**2))
+    assert rms(with_vis) < 0.06
+    assert rms(without) > 0.5
