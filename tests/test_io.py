@@ -157,3 +157,24 @@ def test_read_envmap_option_errors(tmp_path):
 def test_real_probe_loads():
     env = jio.read_envmap(os.path.join(DATA, "grace.hdr"), up="+y")
     assert env.shape == (128, 256, 3) and np.all(np.isfinite(env)) and env.max() > 100
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "stl"])
+def test_read_mesh_formats(tmp_path, ext):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    p = tmp_path / f"m.{ext}"
+    m.export(p)
+    got = jio.read_mesh(p)
+    assert len(got.faces) == len(m.faces)
+    np.testing.assert_allclose(np.sort(np.linalg.norm(got.vertices, axis=1)), 1.0, atol=1e-5)
+
+
+def test_read_mesh_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.ply"):
+        jio.read_mesh(tmp_path / "nope.ply")
+    bad = tmp_path / "bad.obj"
+    bad.write_text("this is not a mesh\n")
+    with pytest.raises(ValueError, match="bad.obj"):
+        jio.read_mesh(bad)
