@@ -176,7 +176,7 @@ def _render_practical(n, v, kd, ks, mu, sigma, slow_sh, fdir, fen, transfer, fvi
         diffuse = diffuse + e
         r = reflect(flat_v, flat_n)
         filt = sh * microfacet_spectrum(sigma, lmax)[sh_degrees(lmax)][:, None]
-        lslow = _real_sh_flat(_unit_vectors(r), lmax) @ filt
+        lslow = _sh_expand_chunked(_unit_vectors(r), filt, lmax)
         if rvis is not None:
             lslow = lslow * jnp.asarray(rvis, dt).reshape(-1)[:, None]
         spec_slow = spec_slow + f[:, None] * lslow
@@ -208,6 +208,17 @@ def _render_practical(n, v, kd, ks, mu, sigma, slow_sh, fdir, fen, transfer, fvi
     shape = batch + (c,)
     parts = [x.reshape(shape) for x in (diffuse, spec_slow, spec_fast)]
     return Components(parts[0], parts[1], parts[2], parts[0] + parts[1] + parts[2])
+
+
+def _sh_expand_chunked(dirs, coeffs, lmax: int, chunk: int = 8192):
+    """$\\sum_i c_i Y_i(\\omega)$ at (N, 3) unit directions, in pixel chunks (memory O(chunk · n_coeffs))."""
+    npx = dirs.shape[0]
+    if npx <= chunk:
+        return _real_sh_flat(dirs, lmax) @ coeffs
+    pad = (-npx) % chunk
+    d = jnp.pad(dirs, ((0, pad), (0, 0))).at[npx:, 2].set(1.0)  # padding rows: +z, a valid direction
+    out = jax.lax.map(lambda x: _real_sh_flat(x, lmax) @ coeffs, d.reshape(-1, chunk, 3))
+    return out.reshape(-1, coeffs.shape[-1])[:npx]
 
 
 def _disk_quadrature(direction, radius, n_theta, n_phi, dt):

@@ -1,0 +1,297 @@
+"""Benchmark jaxsh's forward rendering (practical model, G-buffers, visibility, reference).
+
+Run from the repository root with the project's venv::
+
+    python benchmarks/bench_render.py            # full run (~1-2 min on 2 cores)
+    python benchmarks/bench_render.py --quick    # reduced sizes (~30-60 s)
+
+Options: ``--quick`` (smaller images / maps; most of what remains is compile
+time), ``--seed N`` (unused by the scenes, kept for symmetry). The script enables float64 in
+JAX (``jax_enable_x64``); the library itself never does.
+
+What is measured (wall-clock on the host CPU; "first" is the first call,
+i.e. trace + compile + run, "warm" the minimum of >= 3 runs after a warm-up
+call, see ``_common.time_jax``; the multi-second 512x512 practical render is
+timed once warm, after its first call):
+
+1. Sphere, 512x512 (256x256 with --quick), orthographic camera: the analytic
+   G-buffer (``sphere_gbuffer``) and the practical model of R&H 2001 eq. 24
+   (``render_practical``) under a procedural HDR sky (``procedural_sky``,
+   projected to SH lmax 40) plus one directional sun (a "fast" source).
+   The SH projection of the sky is timed as well (once per lighting).
+2. Mesh, 256x256 (128x128 with --quick): a torus (``trimesh.creation.torus``;
+   an icosphere + box union if that is unavailable). ``mesh_gbuffer`` (ray
+   casting, Embree if importable), the per-capture visibility precomputation
+   -- ``directional_visibility`` for the sun, ``reflected_visibility``, and
+   ``visibility_sh`` with lmax 2 and ~256 hemisphere rays per pixel -- and
+   then ``render_practical`` with those shadows (warm / first).
+3. Reference: ``render_reference`` (full Torrance-Sparrow reflection
+   equation, quadrature over a disk source, exact for the sun) on a 96x96
+   sphere (48x48 with --quick) lit by a disk area source + sun, and the
+   practical model under the same lighting (the disk as
+   ``disk_light_sh``, lmax 40). The RMS relative error of practical vs
+   reference over the lit pixels (reference > 1% of its maximum) is printed.
+
+Peer: Mitsuba 3 (if ``import mitsuba`` works; the script never installs it,
+otherwise a line says why it was not measured) renders the same 512x512
+sphere under the same sky (envmap emitter) and sun with the ``direct``
+integrator, 16 spp, ``roughplastic`` Beckmann alpha = sigma (llvm_ad_rgb
+variant if available). This is a timing peer, not a pixel comparison: the
+BRDFs differ, the result is Monte Carlo, and the envmap is not re-oriented.
+The ratio is jaxsh (G-buffer + practical model, warm) / Mitsuba (warm).
+
+Other processes on the machine add noise (the load average at start is
+printed): on a quiet machine treat differences within ~20% as equal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+import jaxsh  # noqa: E402
+
+warnings.filterwarnings("ignore", message=".*64-bit precision.*")
+warnings.filterwarnings("ignore", category=FutureWarning)
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
+
+from solvers._synthetic import procedural_sky  # noqa: E402
+
+try:
+    import mitsuba  # noqa: F401
+
+    MITSUBA_ERR = None
+except Exception as e:  # pragma: no cover
+    mitsuba = None
+    MITSUBA_ERR = f"{type(e).__name__}: {e}"
+
+# Material and lighting shared by all scenes.
+KD = jnp.array([0.45, 0.35, 0.25])
+KS = jnp.array([0.30, 0.30, 0.30])
+MU = 1.5
+SIGMA = 0.2
+LMAX = 40
+SUN_DIR = np.array([0.5, 0.4, 0.77])
+SUN_DIR = SUN_DIR / np.linalg.norm(SUN_DIR)
+SUN_E = jnp.array([[3.0, 2.8, 2.5]])
+DISK_DIR = np.array([-0.4, 0.2, 0.9])
+DISK_DIR = DISK_DIR / np.linalg.norm(DISK_DIR)
+DISK_R = 0.3
+DISK_L = jnp.array([2.0, 2.2, 2.5])
+
+
+def ortho_cam(n, half_extent, eye=(0.0, -5.0, 1.5)):
+    c2w = jaxsh.look_at(eye=jnp.asarray(eye), target=jnp.zeros(3), up=jnp.array([0.0, 0.0, 1.0]))
+    return jaxsh.OrthographicCamera(scale=2 * half_extent / n, width=n, height=n, cam_to_world=c2w)
+
+
+def make_mesh():
+    if hasattr(trimesh.creation, "torus"):
+        return trimesh.creation.torus(major_radius=1.0, minor_radius=0.35, major_sections=96, minor_sections=48), "torus"
+    a = trimesh.creation.icosphere(subdivisions=4, radius=0.8)
+    b = trimesh.creation.box(extents=(1.8, 0.5, 0.5))
+    return trimesh.util.concatenate([a, b]), "icosphere+box"
+
+
+def time_once(fn):
+    """(first call incl. compile, one warm call) in seconds, for calls of several seconds."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    return first, time.perf_counter() - t0
+
+
+def bench_sphere(tab, n, sky_hw):
+    h, w = sky_hw
+    sky = procedural_sky(h, w)
+    t_first, t_warm = time_jax(lambda: jaxsh.project_latlong(sky, lmax=LMAX))
+    tab.add(f"sky {h}x{w} -> SH lmax {LMAX}", "project_latlong", fmt_t(t_warm), fmt_t(t_first), "")
+    slow = jaxsh.project_latlong(sky, lmax=LMAX)
+    cam = ortho_cam(n, 1.1)
+    center = jnp.zeros(3)
+    t_first, t_gb = time_jax(lambda: jaxsh.sphere_gbuffer(cam, center, 1.0))
+    tab.add(f"sphere {n}x{n}", "sphere_gbuffer", fmt_t(t_gb), fmt_t(t_first), "")
+    g = jaxsh.sphere_gbuffer(cam, center, 1.0)
+    npx = int(g.mask.sum())
+
+    def render():
+        return jaxsh.render_practical(g.normal, g.view, KD, KS, MU, SIGMA, slow_sh=slow, mask=g.mask,
+                                      fast_directions=jnp.asarray(SUN_DIR)[None], fast_energy=SUN_E).total
+
+    t_first, t_warm = time_once(render)
+    tab.add(f"sphere {n}x{n}", "render_practical (sky lmax 40 + sun)", fmt_t(t_warm), fmt_t(t_first),
+            f"{npx / t_warm / 1e6:.2f} Mpx/s")
+    t_warm = t_warm + t_gb
+    tab.add(f"sphere {n}x{n}", "G-buffer + render_practical", fmt_t(t_warm), "", "sum of the warm rows")
+    if mitsuba is not None:
+        try:
+            bench_mitsuba(tab, n, sky, t_warm)
+        except Exception as e:  # pragma: no cover
+            print(f"Mitsuba peer failed: {type(e).__name__}: {e}")
+    return slow
+
+
+def bench_mitsuba(tab, n, sky, t_ours, spp=16):
+    """Mitsuba 3 peer: the same sphere, sky (envmap emitter) and sun, direct illumination only.
+
+    Not a pixel comparison: Mitsuba's ``roughplastic`` (Beckmann, alpha = sigma,
+    ior 1.5) is close to but not the same BRDF, its envmap is +y up (the sky is
+    not re-oriented), and the image is Monte Carlo (``spp`` samples per pixel,
+    ``direct`` integrator, i.e. one bounce, no inter-reflection as in jaxsh).
+    """
+    mi = mitsuba
+    for var in ("llvm_ad_rgb", "scalar_rgb"):
+        try:
+            mi.set_variant(var)
+            break
+        except Exception:
+            continue
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "direct"},
+        "sensor": {"type": "orthographic",
+                   "to_world": T().look_at(origin=[0, -5, 1.5], target=[0, 0, 0], up=[0, 0, 1]) @ T().scale([1.1, 1.1, 1]),
+                   "film": {"type": "hdrfilm", "width": n, "height": n, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "sphere": {"type": "sphere", "bsdf": {"type": "roughplastic", "distribution": "beckmann", "alpha": SIGMA,
+                                              "int_ior": MU}},
+        "env": {"type": "envmap", "bitmap": mi.Bitmap(np.array(sky, dtype=np.float32, copy=True))},
+        "sun": {"type": "directional", "direction": (-SUN_DIR).tolist(),
+                "irradiance": {"type": "rgb", "value": np.asarray(SUN_E)[0].tolist()}},
+    })
+    t_first, t_warm = time_np(lambda: np.asarray(mi.render(scene, spp=spp)), repeats=3)
+    tab.add(f"sphere {n}x{n}", f"Mitsuba {mi.__version__} [{mi.variant()}] direct, {spp} spp",
+            fmt_t(t_warm), fmt_t(t_first), f"jaxsh/Mitsuba (warm) = {ratio(t_ours, t_warm)}")
+
+
+def bench_mesh(tab, n, slow, n_rays):
+    mesh, name = make_mesh()
+    cam = ortho_cam(n, 1.6, eye=(0.0, -4.0, 3.0))
+    engine = "embree" if jaxsh.embree_available() else "auto"
+    t_first, t_warm = time_np(lambda: jaxsh.mesh_gbuffer(cam, mesh), repeats=3)
+    g = jaxsh.mesh_gbuffer(cam, mesh)
+    m = np.asarray(g.mask)
+    npx = int(m.sum())
+    label = f"{name} ({len(mesh.faces)} tris) {n}x{n}"
+    tab.add(label, f"mesh_gbuffer [{engine}]", fmt_t(t_warm), fmt_t(t_first), f"{npx} px hit")
+    p = np.asarray(g.position)[m]
+    nn = np.asarray(g.normal)[m]
+    v = np.asarray(g.view)[m]
+    sun = SUN_DIR[None]
+
+    t0 = time.perf_counter()
+    fvis = jaxsh.directional_visibility(mesh, p, nn, sun)
+    t_dv = time.perf_counter() - t0
+    tab.add(label, "directional_visibility (1 sun)", fmt_t(t_dv), "", f"{float(fvis.mean()):.2f} lit")
+    t0 = time.perf_counter()
+    rvis = jaxsh.reflected_visibility(mesh, p, nn, v)
+    t_rv = time.perf_counter() - t0
+    tab.add(label, "reflected_visibility", fmt_t(t_rv), "", f"{float(rvis.mean()):.2f} visible")
+    t0 = time.perf_counter()
+    tr = jaxsh.visibility_sh(mesh, p, nn, lmax=2, n_dirs=n_rays)
+    t_vs = time.perf_counter() - t0
+    k = len(jaxsh.hemisphere_quadrature(n_rays, 2)[0])
+    tab.add(label, f"visibility_sh lmax 2 ({k} rays/px)", fmt_t(t_vs), "", f"{npx * k / t_vs / 1e6:.2f} Mrays/s")
+    tab.add(label, "visibility precompute total", fmt_t(t_dv + t_rv + t_vs), "", "per capture")
+
+    # scatter the per-pixel data back into images
+    def img(x, shape):
+        out = np.zeros((n * n,) + shape)
+        out[m.reshape(-1)] = np.asarray(x).reshape((-1,) + shape)
+        return jnp.asarray(out.reshape((n, n) + shape))
+
+    fvis_i, rvis_i, tr_i = img(fvis, (1,)), img(rvis, ()), img(tr, (9,))
+
+    def render():
+        return jaxsh.render_practical(g.normal, g.view, KD, KS, MU, SIGMA, slow_sh=slow, mask=g.mask,
+                                      fast_directions=jnp.asarray(sun), fast_energy=SUN_E, transfer=tr_i,
+                                      fast_visibility=fvis_i, reflected_visibility=rvis_i).total
+
+    t_first, t_warm = time_jax(render)
+    tab.add(label, "render_practical (shadowed)", fmt_t(t_warm), fmt_t(t_first), f"{npx / t_warm / 1e6:.2f} Mpx/s")
+
+
+def bench_reference(tab, n, disk_nodes):
+    cam = ortho_cam(n, 1.1)
+    g = jaxsh.sphere_gbuffer(cam, jnp.zeros(3), 1.0)
+    m = np.asarray(g.mask)
+    nn, v = g.normal[m], g.view[m]
+    ddir = jnp.asarray(DISK_DIR)
+    sun = jnp.asarray(SUN_DIR)[None]
+
+    def ref():
+        return jaxsh.render_reference(nn, v, KD, KS, MU, SIGMA, directional=(sun, SUN_E),
+                                      disks=(ddir[None], jnp.array([DISK_R]), DISK_L[None]), disk_nodes=disk_nodes)
+
+    t_first, t_warm = time_jax(ref, repeats=1)
+    tab.add(f"sphere {n}x{n} ({m.sum()} px)", f"render_reference (disk {disk_nodes[0]}x{disk_nodes[1]} + sun)",
+            fmt_t(t_warm), fmt_t(t_first), "")
+    slow = jaxsh.disk_light_sh(ddir, DISK_R, DISK_L, lmax=LMAX)
+
+    def prac():
+        return jaxsh.render_practical(nn, v, KD, KS, MU, SIGMA, slow_sh=slow, fast_directions=sun,
+                                      fast_energy=SUN_E).total
+
+    t_first, t_warm = time_jax(prac)
+    b_ref = np.asarray(ref())
+    b_pr = np.asarray(prac())
+    lum_ref = b_ref.mean(-1)
+    lit = lum_ref > 0.01 * lum_ref.max()
+    rel = np.abs(b_pr - b_ref)[lit] / np.maximum(b_ref[lit], 1e-12)
+    rms = float(np.sqrt(np.mean(rel**2)))
+    tab.add(f"sphere {n}x{n} ({m.sum()} px)", "render_practical (disk lmax 40 + sun)", fmt_t(t_warm), fmt_t(t_first),
+            f"RMS rel err {fmt_e(rms)} ({rms:.1%}; median {np.median(rel):.1%})")
+    return rms
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smaller images and maps")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    q = args.quick
+    print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, trimesh {trimesh.__version__}, "
+          f"Python {platform.python_version()}, {os.cpu_count()} CPUs, embree = {jaxsh.embree_available()}")
+    try:
+        print(f"load average at start: {os.getloadavg()}")
+    except OSError:
+        pass
+    print(f"float64 (jax_enable_x64 = {jax.config.jax_enable_x64}); material kd={np.asarray(KD).tolist()}, "
+          f"ks={np.asarray(KS).tolist()}, mu={MU}, sigma={SIGMA}")
+    if mitsuba is None:
+        print(f"Mitsuba 3 was NOT measured: `import mitsuba` fails in this environment ({MITSUBA_ERR}); "
+              "this script does not install it, so there is no peer renderer in this run.")
+    t_all = time.perf_counter()
+    tab = Table("Forward rendering (jaxsh, CPU, float64)", ["scene", "step", "warm", "first", "note"])
+    slow = bench_sphere(tab, 256 if q else 512, (128, 256) if q else (256, 512))
+    tab.sep()
+    bench_mesh(tab, 128 if q else 256, slow, 256)
+    tab.sep()
+    bench_reference(tab, 48 if q else 96, (24, 48) if q else (48, 96))
+    tab.show()
+    if mitsuba is not None:
+        print("Mitsuba row: timing peer only (Monte Carlo, roughplastic BRDF, envmap not re-oriented); "
+              "the ratio compares jaxsh's G-buffer + practical model with Mitsuba's render of the same sphere.")
+    print(f"total wall time {time.perf_counter() - t_all:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
