@@ -31,6 +31,9 @@ test-all: install-tests
 bench: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[benchmarks]"
 	$(BIN)/python benchmarks/bench_sh.py
+	$(BIN)/python benchmarks/bench_convolution.py
+	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_mitsuba.py
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .hypothesis

@@ -90,6 +90,7 @@ from ._lighting import (
     disk_light_sh as disk_light_sh,
     filter_lighting_microfacet as filter_lighting_microfacet,
     is_fast_source as is_fast_source,
+    split_disk_sources as split_disk_sources,
 )
 from ._render import Components as Components, render_practical as render_practical, render_reference as render_reference
 from ._scene import (

@@ -102,3 +102,40 @@ def filter_lighting_microfacet(coeffs: Float[Array, "n_coeffs *C"], sigma: Float
     lmax = int(round(np.sqrt(coeffs.shape[0]))) - 1
     a = microfacet_spectrum(as_float_array(sigma, "sigma"), lmax)
     return convolve(coeffs, a, channels=coeffs.ndim == 2)
+
+
+def split_disk_sources(
+    directions: Float[Array, "K 3"],
+    angular_radii: Float[Array, " K"],
+    radiance: Float[Array, "K C"],
+    sigma: float,
+    lmax: int,
+    ratio: float = 0.25,
+):
+    """The slow/fast split of R&H sec. 5.3 for a set of disk sources.
+
+    Sources with angular radius `< ratio·σ` become delta functions carrying
+    their total energy (`fast_directions`, `fast_energy`, for eq. 23); the
+    others are summed into slow SH lighting up to `lmax` (for eqs. 21, 22).
+    The split is decided on concrete values (a Python-level choice), so
+    call it outside `jit`.
+
+    **Returns:** `(slow_sh (n_coeffs, C) or None, fast_directions (J, 3) or None, fast_energy (J, C) or None)`.
+    """
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(angular_radii, dtype=np.float64).reshape(-1)
+    rad = np.asarray(radiance, dtype=np.float64).reshape(d.shape[0], -1)
+    if r.shape[0] != d.shape[0]:
+        raise ValueError(f"`angular_radii` must have shape ({d.shape[0]},), got {r.shape}")
+    if np.any(r <= 0) or np.any(r > np.pi):
+        raise ValueError("`angular_radii` must be in (0, pi]")
+    fast = r < ratio * float(sigma)
+    slow_sh = None
+    for k in np.nonzero(~fast)[0]:
+        c = disk_light_sh(d[k] / np.linalg.norm(d[k]), r[k], rad[k], lmax)
+        slow_sh = c if slow_sh is None else slow_sh + c
+    if not np.any(fast):
+        return slow_sh, None, None
+    fd = d[fast] / np.linalg.norm(d[fast], axis=1, keepdims=True)
+    fe = np.asarray(disk_energy(r[fast][:, None], rad[fast]))
+    return slow_sh, fd, fe

@@ -214,3 +214,21 @@ def test_practical_model_with_shadows_vs_reference_on_concave_mesh():
     rms = lambda x: np.sqrt(np.mean((x - ref) ** 2)) / np.sqrt(np.mean(ref**2))
     assert rms(with_vis) < 0.06
     assert rms(without) > 0.5
+
+
+def test_split_disk_sources_slow_fast():
+    """A sun much smaller than sigma becomes a delta with the disk's energy; a wide source goes to SH."""
+    dirs = np.stack([D1, D2])
+    radii = np.array([0.3, 0.005])
+    rad = np.stack([L1, np.full(3, 1e4)])
+    slow, fd, fe = jaxsh.split_disk_sources(dirs, radii, rad, sigma=0.1, lmax=20)
+    np.testing.assert_allclose(slow, jaxsh.disk_light_sh(D1, 0.3, L1, 20), atol=1e-14)
+    np.testing.assert_allclose(fd, D2[None], atol=1e-15)
+    np.testing.assert_allclose(fe[0], 2 * np.pi * (1 - np.cos(0.005)) * 1e4, rtol=1e-12)
+    # the delta approximation of the small disk against its exact quadrature in the reference renderer
+    n = _sphere_pixels(16)
+    exact = np.asarray(jaxsh.render_reference(n, V, KD, KS, 1.5, 0.1, disks=(D2[None], np.array([0.005]), np.full((1, 3), 1e4)), disk_nodes=(8, 16)))
+    delta = np.asarray(jaxsh.render_reference(n, V, KD, KS, 1.5, 0.1, directional=(fd, fe)))
+    assert np.sqrt(np.mean((exact - delta) ** 2)) / np.sqrt(np.mean(exact**2)) < 2e-3
+    with pytest.raises(ValueError, match="angular_radii"):
+        jaxsh.split_disk_sources(dirs, np.array([0.3]), rad, 0.1, 4)
