@@ -108,3 +108,9 @@ from ._scene import (
     visibility_sh as visibility_sh,
     visibility_weighted_irradiance as visibility_weighted_irradiance,
 )
+from ._rbf import (
+    RBFModel as RBFModel,
+    rbf_evaluate as rbf_evaluate,
+    sbrdf_points as sbrdf_points,
+    scaled_distances as scaled_distances,
+)
