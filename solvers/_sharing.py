@@ -97,7 +97,7 @@ def _check_inputs(points, values, scale, weights):
             f"too few samples: `points` has {n} rows but a degree-1 polynomial in {d}-D needs at least d + 1 = {d + 1}"
         )
     if scale is None:
-        scale = jnp.ones((d,))
+        scale = jnp.ones((d,), dtype=points.dtype)
     scale = _as_float(scale, "scale")
     if scale.ndim == 0:
         scale = jnp.broadcast_to(scale, (d,))
@@ -107,7 +107,7 @@ def _check_inputs(points, values, scale, weights):
         weights = _as_float(weights, "weights")
         if weights.shape != (n,):
             raise ValueError(f"`weights` must have shape ({n},), got {tuple(weights.shape)}")
-    arrays = [points, values, scale] + ([] if weights is None else [weights])
+    arrays = [points, values]
     dt = max((a.dtype for a in arrays), key=lambda t: jnp.dtype(t).itemsize)
     points, values, scale = points.astype(dt), values.astype(dt), scale.astype(dt)
     weights = None if weights is None else weights.astype(dt)
@@ -478,3 +478,361 @@ def _initial_subset(p, n_init, n_centers, key):
             "degree-1 polynomial (the coordinate extremes); raise `n_centers`"
         )
     return np.asarray(chosen, dtype=np.int32)
+
+
+# --------------------------------------------------------------------------- image samples and the paper's models
+
+
+class Samples(eqx.Module):
+    """Reflectance samples taken from images (Zickler 2006 secs. 6–8).
+
+    **Fields** (one row per kept sample; `N` samples):
+
+    - `points`: `(N, 3)` $(u, v, w)$ (eq. 7) or `(N, 5)` $(x, y, u, v, w)$ (eq. 13).
+    - `values`: `(N, C)` reflectance $f = I / (E\\cos\\theta_i)$ (shading removed).
+    - `cos_i`: `(N,)` $\\cos\\theta_i$ (the greedy residual weight, sec. 6).
+    - `wi`, `wo`, `n`: `(N, 3)` light, view, normal; `xy`: `(N, 2)` or `None`.
+    - `image`, `pixel`: `(N,)` int, the source image and flat pixel index.
+    """
+
+    points: Array
+    values: Array
+    cos_i: Array
+    wi: Array
+    wo: Array
+    n: Array
+    xy: Array | None
+    image: Array
+    pixel: Array
+
+    def baseline_data(self):
+        """`(wi, wo, n, values, cos_i)` — the arguments of the parametric baselines."""
+        return self.wi, self.wo, self.n, self.values, self.cos_i
+
+
+def _per_light(x, n_lights, channels, name):
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim == 0:
+        a = np.full((n_lights,), float(a))
+    if a.shape == (n_lights,):
+        a = np.broadcast_to(a[:, None], (n_lights, channels))
+    if a.shape != (n_lights, channels):
+        raise ValueError(f"`{name}` must be a scalar, ({n_lights},) or ({n_lights}, {channels}), got {a.shape}")
+    return a
+
+
+def reflectance_samples(
+    images: Float[Array, "L H W *C"],
+    normal: Float[Array, "H W 3"],
+    view: Float[Array, "*HW 3"],
+    lights: Float[Array, "L 3"],
+    irradiance=1.0,
+    mask=None,
+    xy: Float[Array, "H W 2"] | None = None,
+    visible=None,
+    min_cos: float = 0.0,
+) -> Samples:
+    """Turn images under directional lights into reflectance samples (Zickler 2006 secs. 6, 8.1).
+
+    Sample $f = I/(E\\cos\\theta_i)$ at each pixel in `mask` with
+    $\\cos\\theta_i$ and $\\cos\\theta_o > $ `min_cos` and (if given)
+    `visible` — shadowed and grazing pixels are discarded and shading is
+    removed by dividing by $\\cos\\theta_i$ (sec. 8.1). Points are $(u, v, w)$
+    or, with `xy`, $(x, y, u, v, w)$ (`jaxsh.sbrdf_points`).
+
+    **Arguments:** `images` `(L, H, W, C)` or `(L, H, W)`; `normal` `(H, W, 3)`;
+    `view` `(H, W, 3)` or `(3,)` (towards the camera); `lights` `(L, 3)`
+    (towards the lights); `irradiance` scalar, `(L,)` or `(L, C)`; `mask`
+    `(H, W)` bool; `xy` `(H, W, 2)`; `visible` `(L, H, W)` bool.
+
+    **Returns:** `Samples` (concrete NumPy-backed arrays; call outside `jit`).
+    """
+    imgs = np.asarray(images, dtype=np.float64)
+    if imgs.ndim == 3:
+        imgs = imgs[..., None]
+    if imgs.ndim != 4:
+        raise ValueError(f"`images` must have shape (L, H, W) or (L, H, W, C), got {imgs.shape}")
+    nl, h, w, c = imgs.shape
+    nrm = np.asarray(normal, dtype=np.float64)
+    if nrm.shape != (h, w, 3):
+        raise ValueError(f"`normal` must have shape ({h}, {w}, 3), got {nrm.shape}")
+    v = np.asarray(view, dtype=np.float64)
+    if v.shape == (3,):
+        v = np.broadcast_to(v, (h, w, 3))
+    if v.shape != (h, w, 3):
+        raise ValueError(f"`view` must have shape (3,) or ({h}, {w}, 3), got {v.shape}")
+    lt = np.asarray(lights, dtype=np.float64)
+    if lt.shape != (nl, 3):
+        raise ValueError(f"`lights` must have shape ({nl}, 3), got {lt.shape}")
+    e = _per_light(irradiance, nl, c, "irradiance")
+    m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    if m.shape != (h, w):
+        raise ValueError(f"`mask` must have shape ({h}, {w}), got {m.shape}")
+    if xy is not None:
+        xy = np.asarray(xy, dtype=np.float64)
+        if xy.shape != (h, w, 2):
+            raise ValueError(f"`xy` must have shape ({h}, {w}, 2), got {xy.shape}")
+    if visible is not None:
+        visible = np.asarray(visible, bool)
+        if visible.shape != (nl, h, w):
+            raise ValueError(f"`visible` must have shape ({nl}, {h}, {w}), got {visible.shape}")
+    if not np.all(np.isfinite(imgs[:, m])):
+        raise ValueError("`images` contain non-finite values (NaN or inf) inside the mask")
+    cos_i = np.einsum("hwk,lk->lhw", nrm, lt)
+    cos_o = np.sum(nrm * v, -1)
+    keep = m[None] & (cos_i > min_cos) & (cos_o > min_cos)[None]
+    if visible is not None:
+        keep &= visible
+    li, pi, pj = np.nonzero(keep)
+    if li.size == 0:
+        raise ValueError("no usable samples: every pixel is masked, shadowed or facing away")
+    ci = cos_i[li, pi, pj]
+    vals = imgs[li, pi, pj] / (e[li] * ci[:, None])
+    wi = lt[li]
+    wo = v[pi, pj]
+    nn = nrm[pi, pj]
+    pts = np.asarray(jaxsh.sbrdf_points(wi, wo, nn, None if xy is None else xy[pi, pj]))
+    return Samples(
+        jnp.asarray(pts), jnp.asarray(vals), jnp.asarray(ci), jnp.asarray(wi), jnp.asarray(wo), jnp.asarray(nn),
+        None if xy is None else jnp.asarray(xy[pi, pj]), jnp.asarray(li), jnp.asarray(pi * w + pj),
+    )
+
+
+def _flat(a, shape, k):
+    return jnp.broadcast_to(jnp.asarray(a), shape + (k,)).reshape(-1, k)
+
+
+def _render_geometry(normal, view, light, mask):
+    normal = jnp.asarray(normal)
+    shape = normal.shape[:-1]
+    view = jnp.broadcast_to(jnp.asarray(view, normal.dtype), normal.shape)
+    light = jnp.broadcast_to(jnp.asarray(light, normal.dtype), normal.shape)
+    cos_i = jnp.sum(normal * light, -1)
+    cos_o = jnp.sum(normal * view, -1)
+    ok = (cos_i > 0.0) & (cos_o > 0.0)
+    if mask is not None:
+        ok = ok & jnp.asarray(mask, bool)
+    # harmless substitute geometry where the pixel is not rendered
+    nsafe = jnp.where(ok[..., None], normal, jnp.asarray([0.0, 0.0, 1.0], normal.dtype))
+    lsafe = jnp.where(ok[..., None], light, jnp.asarray([0.6, 0.0, 0.8], normal.dtype))
+    vsafe = jnp.where(ok[..., None], view, jnp.asarray([0.0, 0.0, 1.0], normal.dtype))
+    return shape, nsafe, vsafe, lsafe, jnp.where(ok, cos_i, 0.0), ok
+
+
+class RBFReflectance(eqx.Module):
+    """An RBF BRDF $\\tilde f(u, v, w)$ (eq. 12) or SBRDF $\\tilde f(x, y, u, v, w)$ (eq. 13).
+
+    **Fields:** `fit` (`SharingFit`, its `model` the `jaxsh.RBFModel`),
+    `spatial` (static bool: 5-D with surface coordinates).
+
+    `brdf(wi, wo, n, xy=None)` evaluates the reflectance `(..., C)`;
+    `render(normal, view, light, irradiance, mask, xy)` predicts an image
+    $I = \\max(\\tilde f, 0)\\,E\\cos\\theta_i$ under a new directional light
+    and/or view (0 where $\\cos\\theta_i \\le 0$, $\\cos\\theta_o \\le 0$ or
+    off the mask). Negative RBF values (possible away from the data) are
+    clamped to 0.
+    """
+
+    fit: SharingFit
+    spatial: bool = eqx.field(static=True)
+
+    def brdf(self, wi, wo, n, xy=None):
+        if self.spatial and xy is None:
+            raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
+        wi, wo, n = (jnp.asarray(a) for a in (wi, wo, n))
+        shape = jnp.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], n.shape[:-1])
+        if self.spatial:
+            shape = jnp.broadcast_shapes(shape, jnp.shape(xy)[:-1])
+        q = jaxsh.sbrdf_points(_flat(wi, shape, 3), _flat(wo, shape, 3), _flat(n, shape, 3),
+                               _flat(xy, shape, 2) if self.spatial else None)
+        out = self.fit(q)
+        return out.reshape(shape + out.shape[1:])
+
+    def render(self, normal, view, light, irradiance=1.0, mask=None, xy=None):
+        """Predicted radiance `(H, W, C)` (or `(H, W)`) for a directional light (Zickler 2006 sec. 8.2)."""
+        shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
+        f = jnp.maximum(self.brdf(li, v, n, xy), 0.0)
+        e = jnp.asarray(irradiance, f.dtype)
+        scale = jnp.where(ok, cos, 0.0)
+        return f * (scale[..., None] * e if f.ndim > len(shape) else scale * e)
+
+
+def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothing=0.0, key=None, **kwargs) -> RBFReflectance:
+    """Homogeneous BRDF $\\tilde f(u, v, w)$ of Zickler 2006 eq. 12, $M = \\mathrm{diag}(1, 1, m_w)$.
+
+    Greedy centres with residuals weighted by $\\cos\\theta_i$ (sec. 6).
+    Extra keyword arguments go to `fit_sharing` (`tol`, `n_init`, `n_add`,
+    `chunk`). The paper's $m_w$ is 0.1–0.5.
+    """
+    if samples.points.shape[1] != 3:
+        raise ValueError(f"`samples` must have (u, v, w) points (N, 3), got {tuple(samples.points.shape)}")
+    fit = fit_sharing(samples.points, samples.values, n_centers, scale=jnp.asarray([1.0, 1.0, m_w]),
+                      smoothing=smoothing, key=key, weights=samples.cos_i, **kwargs)
+    return RBFReflectance(fit, False)
+
+
+def fit_sbrdf(samples: Samples, n_centers: int, m_xy: float = 0.3, m_w: float = 0.3, smoothing=0.0, key=None,
+              **kwargs) -> RBFReflectance:
+    """Smoothly varying SBRDF $\\tilde f(x, y, u, v, w)$ of Zickler 2006 eq. 13, $M = \\mathrm{diag}(m_{xy}, m_{xy}, 1, 1, m_w)$.
+
+    Reflectance sharing: one 5-D interpolant over all surface points, so
+    angular samples seen at one point inform its neighbours (sec. 7). The
+    paper's $m_{xy}$ is 0.2–0.4 for $(x, y) \\in [0, 1]^2$.
+    """
+    if samples.points.shape[1] != 5:
+        raise ValueError(f"`samples` must have (x, y, u, v, w) points (N, 5), got {tuple(samples.points.shape)}")
+    fit = fit_sharing(samples.points, samples.values, n_centers,
+                      scale=jnp.asarray([m_xy, m_xy, 1.0, 1.0, m_w]), smoothing=smoothing, key=key,
+                      weights=samples.cos_i, **kwargs)
+    return RBFReflectance(fit, True)
+
+
+def _lookup(amap, xy):
+    """Nearest-texel lookup of an (H, W, C) map over [0, 1]^2 (column ↔ x, row ↔ y)."""
+    h, w = amap.shape[:2]
+    j = jnp.clip(jnp.floor(xy[..., 0] * w).astype(jnp.int32), 0, w - 1)
+    i = jnp.clip(jnp.floor(xy[..., 1] * h).astype(jnp.int32), 0, h - 1)
+    return amap[i, j]
+
+
+def _fill(amap):
+    """Replace NaN texels (never observed) by the per-channel median of the observed ones."""
+    med = np.nanmedian(amap.reshape(-1, amap.shape[-1]), axis=0)
+    return np.where(np.isnan(amap), med[None, None, :], amap)
+
+
+class DichromaticReflectance(eqx.Module):
+    """Zickler 2006 eq. 14: $I_k = s_k\\,(a_k(\\vec x)\\,d_k(\\vec q) + g(\\vec q))\\,E\\cos\\theta_i$.
+
+    **Fields:** `albedo` `(H, W, 3)` map over $(x, y) \\in [0, 1]^2$ (the
+    per-point median of the diffuse samples, sec. 8.1); `diffuse`
+    (`SharingFit`, 3 channels $d_k$, one set of centres); `specular`
+    (`SharingFit`, scalar $g$).
+    """
+
+    albedo: Array
+    diffuse: SharingFit
+    specular: SharingFit
+
+    def render(self, normal, view, light, xy, color=(1.0, 1.0, 1.0), irradiance=1.0, mask=None):
+        """Predicted radiance `(H, W, 3)` under a directional light of RGB unit colour `color`."""
+        shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
+        q = jaxsh.sbrdf_points(_flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
+        d = jnp.maximum(self.diffuse(q), 0.0).reshape(shape + (3,))
+        g = jnp.maximum(self.specular(q), 0.0).reshape(shape)
+        a = _lookup(self.albedo, jnp.asarray(xy))
+        s = jnp.asarray(color, d.dtype).reshape((1,) * len(shape) + (3,))
+        rad = s * (a * d + g[..., None])
+        return rad * (jnp.where(ok, cos, 0.0) * jnp.asarray(irradiance, d.dtype))[..., None]
+
+
+def fit_dichromatic(
+    diffuse_images, specular_images, colors, normal, view, lights, xy, n_centers_diffuse: int,
+    n_centers_specular: int, irradiance=1.0, mask=None, m_xy: float = 0.3, m_w: float = 0.3, smoothing=0.0,
+    key=None, min_cos: float = 0.0, **kwargs,
+) -> DichromaticReflectance:
+    """Fit the dichromatic SBRDF of Zickler 2006 eq. 14 from separated images (sec. 8.1).
+
+    Shading is removed ($\\div E s_k\\cos\\theta_i$; shadowed pixels dropped),
+    the RGB albedo $a_k(\\vec x)$ is the median over the images of the
+    diffuse samples at each pixel, the normalized diffuse samples
+    $r_k/a_k$ are fitted by three 5-D RBFs $d_k$ (shared centres, batched
+    channels) and the specular samples $\\sum_k I_{s,k}s_k / (E\\cos\\theta_i\\sum_k s_k^2)$
+    by one 5-D RBF $g$, both with $M = \\mathrm{diag}(m_{xy}, m_{xy}, 1, 1, m_w)$.
+
+    **Arguments:** `diffuse_images`, `specular_images` `(L, H, W, 3)`;
+    `colors` `(L, 3)` unit RGB source colours $\\hat s$; `normal`, `view`,
+    `lights`, `xy`, `irradiance`, `mask` as in `reflectance_samples`.
+    Pixels never lit keep the median albedo of the others.
+    """
+    dimg = np.asarray(diffuse_images, np.float64)
+    simg = np.asarray(specular_images, np.float64)
+    if dimg.ndim != 4 or dimg.shape[-1] != 3 or simg.shape != dimg.shape:
+        raise ValueError(
+            f"`diffuse_images` and `specular_images` must both have shape (L, H, W, 3), got {dimg.shape} and {simg.shape}"
+        )
+    nl, h, w, _ = dimg.shape
+    s = np.asarray(colors, np.float64)
+    if s.shape != (nl, 3):
+        raise ValueError(f"`colors` must have shape ({nl}, 3), got {s.shape}")
+    e = _per_light(irradiance, nl, 1, "irradiance")[:, 0]
+    eff = (s * e[:, None])[:, None, None, :]
+    ds = reflectance_samples(dimg / eff, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
+    # median albedo map (sec. 8.1)
+    stack = np.full((nl, h * w, 3), np.nan)
+    stack[np.asarray(ds.image), np.asarray(ds.pixel)] = np.asarray(ds.values)
+    seen = ~np.all(np.isnan(stack), axis=0)
+    albedo = np.full((h * w, 3), np.nan)
+    cols = np.nonzero(seen[:, 0])[0]
+    albedo[cols] = np.nanmedian(stack[:, cols], axis=0)
+    albedo = albedo.reshape(h, w, 3)
+    albedo = _fill(albedo)
+    albedo = np.maximum(albedo, 1e-6 * np.max(albedo))
+    a_s = albedo.reshape(-1, 3)[np.asarray(ds.pixel)]
+    dvals = np.asarray(ds.values) / a_s
+    sc = jnp.asarray([m_xy, m_xy, 1.0, 1.0, m_w])
+    dfit = fit_sharing(ds.points, dvals, n_centers_diffuse, scale=sc, smoothing=smoothing, key=key,
+                       weights=ds.cos_i, **kwargs)
+    spec = np.sum(simg * s[:, None, None, :], -1) / (np.sum(s * s, -1) * e)[:, None, None]
+    ss = reflectance_samples(spec, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
+    gfit = fit_sharing(ss.points, ss.values[:, 0], n_centers_specular, scale=sc, smoothing=smoothing, key=key,
+                       weights=ss.cos_i, **kwargs)
+    return DichromaticReflectance(jnp.asarray(albedo), dfit, gfit)
+
+
+class OneImageReflectance(eqx.Module):
+    """Zickler 2006 eq. 15: $I_k = s_k\\,(a_k(\\vec x) + g(x, y, u, v))\\,E\\cos\\theta_i$.
+
+    The one-image special case: all samples share $w$, so the specular
+    function drops it; the diffuse part is Lambertian with the albedo map
+    `albedo` `(H, W, 3)` read off the image. `specular` is the 4-D
+    `SharingFit`.
+    """
+
+    albedo: Array
+    specular: SharingFit
+
+    def render(self, normal, view, light, xy, color=(1.0, 1.0, 1.0), irradiance=1.0, mask=None):
+        """Predicted radiance `(H, W, 3)` under a new directional light / view."""
+        shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
+        q = jaxsh.sbrdf_points(_flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
+        g = jnp.maximum(self.specular(q[:, :4]), 0.0).reshape(shape)
+        a = _lookup(self.albedo, jnp.asarray(xy))
+        rad = jnp.asarray(color, g.dtype).reshape((1,) * len(shape) + (3,)) * (a + g[..., None])
+        return rad * (jnp.where(ok, cos, 0.0) * jnp.asarray(irradiance, g.dtype))[..., None]
+
+
+def fit_one_image(
+    diffuse_image, specular_image, color, normal, view, light, xy, n_centers: int, irradiance=1.0, mask=None,
+    m_xy: float = 0.3, smoothing=0.0, key=None, min_cos: float = 0.0, **kwargs,
+) -> OneImageReflectance:
+    """Fit eq. 15 of Zickler 2006 from one separated image (sec. 8.4).
+
+    $a_k(\\vec x) = I_{d,k}/(s_k E\\cos\\theta_i)$ per lit pixel (unlit
+    pixels get the median albedo); $g$ is a 4-D RBF over $\\vec q = (x, y, u, v)$
+    with $M = \\mathrm{diag}(m_{xy}, m_{xy}, 1, 1)$, fitted to
+    $\\sum_k I_{s,k}s_k/(E\\cos\\theta_i\\sum_k s_k^2)$.
+
+    **Arguments:** `diffuse_image`, `specular_image` `(H, W, 3)`; `color`
+    `(3,)`; `light` `(3,)`; the rest as in `fit_dichromatic`.
+    """
+    dimg = np.asarray(diffuse_image, np.float64)
+    simg = np.asarray(specular_image, np.float64)
+    if dimg.ndim != 3 or dimg.shape[-1] != 3 or simg.shape != dimg.shape:
+        raise ValueError(f"`diffuse_image` and `specular_image` must have shape (H, W, 3), got {dimg.shape} and {simg.shape}")
+    h, w, _ = dimg.shape
+    s = np.asarray(color, np.float64)
+    if s.shape != (3,):
+        raise ValueError(f"`color` must have shape (3,), got {s.shape}")
+    e = float(irradiance)
+    lt = np.asarray(light, np.float64).reshape(1, 3)
+    ds = reflectance_samples(dimg[None] / (s * e), normal, view, lt, 1.0, mask, xy, min_cos=min_cos)
+    albedo = np.full((h * w, 3), np.nan)
+    albedo[np.asarray(ds.pixel)] = np.asarray(ds.values)
+    albedo = _fill(albedo.reshape(h, w, 3))
+    spec = np.sum(simg * s, -1) / (np.sum(s * s) * e)
+    ss = reflectance_samples(spec[None], normal, view, lt, 1.0, mask, xy, min_cos=min_cos)
+    pts = ss.points[:, :4]
+    gfit = fit_sharing(pts, ss.values[:, 0], n_centers, scale=jnp.asarray([m_xy, m_xy, 1.0, 1.0]),
+                       smoothing=smoothing, key=key, weights=ss.cos_i, **kwargs)
+    return OneImageReflectance(jnp.asarray(albedo), gfit)

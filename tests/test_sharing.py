@@ -1,0 +1,229 @@
+"""solvers.fit_sharing and the reflectance-sharing models (Zickler 2006 eqs. 10-15, secs. 6-8).
+
+References: scipy's RBFInterpolator (kernel "linear", degree 1) for the
+saddle-point solve; exactness at the centres; closed-form radiance for the
+sample/render pipeline; the paper's protocols on synthetic scenes (reduced
+here; the full-size runs are marked slow).
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.interpolate import RBFInterpolator
+
+import jaxsh
+import solvers
+from solvers import _sharing as S
+from solvers import _sharing_scenes as Z
+
+
+def _data(rng, n, d, c=None):
+    x = rng.uniform(-1, 1, size=(n, d))
+    y = np.sin(2 * x[:, 0]) * np.cos(x[:, 1]) + 0.3 * x[:, -1] ** 2
+    if c is not None:
+        y = np.stack([y * (k + 1) + k for k in range(c)], -1)
+    return x, y
+
+
+@pytest.mark.parametrize("d,c", [(3, None), (3, 3), (5, 2)])
+@pytest.mark.parametrize("smoothing", [0.0, 0.05])
+def test_interpolation_equals_scipy(rng, d, c, smoothing):
+    x, y = _data(rng, 250, d, c)
+    s = rng.uniform(0.2, 1.0, size=d)
+    fit = solvers.fit_sharing(x, y, 250, scale=s, smoothing=smoothing)
+    assert fit.status == "success"
+    xt = rng.uniform(-1.2, 1.2, size=(400, d))
+    # scipy's kernel is -r and its smoothing adds to the diagonal: the same system as Psi - rho I (eq. 10)
+    ref = RBFInterpolator(x * s, y, kernel="linear", degree=1, smoothing=smoothing)(xt * s)
+    out = np.asarray(fit(xt))
+    assert out.shape == ref.shape
+    np.testing.assert_allclose(out, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+    if smoothing == 0.0:  # interpolates: exact at the centres
+        np.testing.assert_allclose(np.asarray(fit(x)), y, atol=1e-10)
+
+
+def test_float32_fit(rng):
+    x, y = _data(rng, 200, 3, 3)
+    f64 = solvers.fit_sharing(x, y, 200)
+    f32 = solvers.fit_sharing(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32), 200)
+    assert f32.model.weights.dtype == jnp.float32
+    xt = rng.uniform(-1, 1, size=(300, 3))
+    # documented: float32 fitting accurate to ~1e-3 relative on small problems
+    np.testing.assert_allclose(np.asarray(f32(jnp.asarray(xt, jnp.float32))), np.asarray(f64(xt)),
+                               atol=1e-3 * np.abs(y).max())
+
+
+def test_greedy_selection(rng):
+    x, y = _data(rng, 3000, 3, 2)
+    w = rng.uniform(0.2, 1.0, size=3000)
+    fit = solvers.fit_sharing(x, y, 200, scale=[1.0, 1.0, 0.5], weights=w, key=jax.random.PRNGKey(1), n_add=30)
+    idx = np.asarray(fit.center_index)
+    assert fit.status == "success" and len(idx) == 200 and len(set(idx.tolist())) == 200
+    assert int(fit.history_centers[-1]) == 200 and np.all(np.diff(np.asarray(fit.history_centers)) > 0)
+    # the final model is the interpolant of its centres (independent: scipy on the selected subset)
+    s = np.array([1.0, 1.0, 0.5])
+    ref = RBFInterpolator(x[idx] * s, y[idx], kernel="linear", degree=1)(x * s)
+    np.testing.assert_allclose(np.asarray(fit(x)), ref, atol=1e-8)
+    # recorded residual = weighted relative RMS over all samples
+    r = (y - ref) * w[:, None]
+    np.testing.assert_allclose(float(fit.rms), np.sqrt((r**2).sum() / ((y * w[:, None]) ** 2).sum()), rtol=1e-6)
+    # greedy beats a random subset of the same size
+    rnd = rng.choice(3000, 200, replace=False)
+    r_rnd = (y - RBFInterpolator(x[rnd] * s, y[rnd], kernel="linear", degree=1)(x * s)) * w[:, None]
+    assert float(fit.rms) < 0.7 * np.sqrt((r_rnd**2).sum() / ((y * w[:, None]) ** 2).sum())
+
+
+def test_greedy_tolerance_and_status(rng):
+    x, y = _data(rng, 2000, 3)
+    loose = solvers.fit_sharing(x, y, 400, tol=0.05, n_add=20)
+    assert loose.status == "success" and float(loose.rms) <= 0.05 and loose.model.n_centers < 400
+    tight = solvers.fit_sharing(x, y, 40, tol=1e-9, n_add=10)
+    assert tight.status == "tol_not_reached" and tight.model.n_centers == 40
+
+
+def test_bad_input(rng):
+    x, y = _data(rng, 50, 3)
+    dup = np.concatenate([x, x[:1]])
+    with pytest.raises(ValueError, match="duplicate"):
+        solvers.fit_sharing(dup, np.concatenate([y, y[:1]]), 51)
+    flat = x.copy()
+    flat[:, 2] = 0.5  # one image: constant w
+    with pytest.raises(ValueError, match="degenerate"):
+        solvers.fit_sharing(flat, y, 50)
+    plane = x.copy()
+    plane[:, 2] = 0.3 * x[:, 0] - 0.2 * x[:, 1]  # coplanar, not axis-aligned
+    with pytest.raises(ValueError, match="degenerate"):
+        solvers.fit_sharing(plane, y, 20)
+    with pytest.raises(ValueError, match="too few samples"):
+        solvers.fit_sharing(x[:3], y[:3], 3)
+    bad = y.copy()
+    bad[4] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        solvers.fit_sharing(x, bad, 50)
+    badx = x.copy()
+    badx[1, 0] = np.inf
+    with pytest.raises(ValueError, match="non-finite"):
+        solvers.fit_sharing(badx, y, 50)
+    with pytest.raises(ValueError, match="n_centers"):
+        solvers.fit_sharing(x, y, 51)
+    with pytest.raises(ValueError, match="n_centers"):
+        solvers.fit_sharing(x, y, 3)
+    with pytest.raises(ValueError, match="scale"):
+        solvers.fit_sharing(x, y, 50, scale=[1.0, -1.0, 1.0])
+    with pytest.raises(ValueError, match="scale"):
+        solvers.fit_sharing(x, y, 50, scale=[1.0, 1.0])
+    with pytest.raises(ValueError, match="values"):
+        solvers.fit_sharing(x, y[:-1], 50)
+    with pytest.raises(ValueError, match="images"):
+        S.reflectance_samples(np.full((1, 4, 4), np.nan), np.zeros((4, 4, 3)) + [0, 0, 1.0], Z.VIEW, [[0, 0, 1.0]])
+
+
+def test_samples_and_render_closed_form():
+    """f = a + b w is reproduced exactly (degree-1 polynomial); radiance in closed form from angles."""
+    normal, mask, _ = Z.sphere_geometry(24)
+    lights = Z.theta_d_lights(np.array([0.2, 0.5, 0.8, 1.1]))
+
+    def brdf(wi, wo, n):
+        td = 0.5 * jnp.arccos(jnp.clip(jnp.sum(wi * wo, -1), -1.0, 1.0))
+        return jnp.repeat((0.3 + 0.2 * (2 * td / math.pi))[..., None], 2, -1)
+
+    imgs = Z.render_images(brdf, normal, mask, lights, irradiance=2.0)
+    smp = S.reflectance_samples(imgs, normal, Z.VIEW, lights, irradiance=2.0, mask=mask)
+    # the samples' reflectance equals the BRDF (shading and irradiance removed)
+    td = 0.5 * np.arccos(np.clip((np.asarray(smp.wi) * np.asarray(smp.wo)).sum(-1), -1, 1))
+    np.testing.assert_allclose(np.asarray(smp.values)[:, 0], 0.3 + 0.4 * td / math.pi, rtol=1e-12)
+    m = S.fit_homogeneous(smp, 60)
+    novel = np.array([0.3, -0.4, 0.866])
+    novel = novel / np.linalg.norm(novel)
+    pred = np.asarray(m.render(normal, Z.VIEW, novel, irradiance=1.5, mask=mask))
+    ci = np.maximum(normal @ novel, 0.0) * mask
+    tdn = 0.5 * np.arccos(novel[2])
+    truth = (0.3 + 0.4 * tdn / math.pi) * 1.5 * ci
+    np.testing.assert_allclose(pred[..., 0], truth, atol=1e-9)
+
+
+def test_models_errors():
+    normal, mask, xy = Z.sphere_geometry(16)
+    smp = S.reflectance_samples(np.ones((2, 16, 16, 1)), normal, Z.VIEW, Z.theta_d_lights(np.array([0.3, 0.6])),
+                                mask=mask, xy=xy)
+    with pytest.raises(ValueError, match=r"\(u, v, w\)"):
+        S.fit_homogeneous(smp, 50)
+    m = S.fit_sbrdf(smp, 50)
+    with pytest.raises(ValueError, match="xy"):
+        m.brdf(normal, normal, normal)
+
+
+# --------------------------------------------------------------------------- paper protocols (reduced)
+
+
+def test_homogeneous_protocol_reduced():
+    """Sec. 6.1 at 40x40, 300 centres: RBF beats a fitted Ward model (both BRDFs) and Lafortune (metal)."""
+    metal = Z.homogeneous_protocol(Z.metallic_brdf, n_px=40, centers=(100, 300), lafortune_lobes=(2,))
+    v = metal["valid"]
+    assert v["rbf300"] < v["rbf100"]
+    assert v["rbf300"] < 0.8 * v["ward"] and v["rbf300"] < 0.9 * v["lafortune2"]
+    assert v["rbf300"] < 0.35
+    on = Z.homogeneous_protocol(Z.oren_nayar_brdf, n_px=40, centers=(300,), lafortune_lobes=())
+    assert on["valid"]["rbf300"] < 0.5 * on["valid"]["ward"] and on["valid"]["rbf300"] < 0.07
+
+
+def test_hemisphere_sharing_reduced():
+    """Sec. 7.1 / fig. 11 at 40x40: sharing from 5 images beats per-pixel interpolation of 5 images."""
+    r = Z.hemisphere_protocol(n_px=40, centers=(300,), n_out=12, no_sharing=(5,), sharing_centers=300)
+    v = r["valid"]
+    assert v["sharing5_rbf300"] < 0.5 * v["nosharing5"]
+    assert v["sharing10_rbf300"] < 0.05
+
+
+def test_one_image_reduced():
+    """Sec. 8.4: eq. 15 from one image predicts a novel light within 20 % (the specular part helps)."""
+    r = Z.one_image_protocol(n_px=40, n_centers=300)
+    assert r["status"] == "success"
+    assert r["valid"] < 0.2 and r["valid"] < r["diffuse_only_valid"]
+
+
+def test_dichromatic_reduced():
+    """Eq. 14 with the median albedo map: textured hemisphere, 6 images, held-out lights."""
+    normal, mask, xy = Z.sphere_geometry(32)
+    lights = Z.cone_lights(6, 0.9)
+    novel = Z.cone_lights(4, 0.8, phase=1.1)
+    dif = lambda wi, wo, n, q: Z.dichromatic_components(wi, wo, n, q)[0]  # noqa: E731
+    spec = lambda wi, wo, n, q: jnp.repeat(Z.dichromatic_components(wi, wo, n, q)[1][..., None], 3, -1)  # noqa: E731
+    s = np.tile(np.ones(3) / math.sqrt(3.0), (6, 1))
+    d_in = Z.render_images(dif, normal, mask, lights, xy=xy) / math.sqrt(3.0)
+    s_in = Z.render_images(spec, normal, mask, lights, xy=xy) / math.sqrt(3.0)
+    m = S.fit_dichromatic(d_in, s_in, s, normal, Z.VIEW, lights, xy, 300, 300, mask=mask, min_cos=0.1)
+    # the median albedo map recovers the texture up to the (smooth) d_k normalization
+    a_true = np.asarray(Z.albedo_texture(jnp.asarray(xy)))[mask]
+    a = np.asarray(m.albedo)[mask]
+    ratio = a / a_true
+    assert np.std(ratio) / np.mean(ratio) < 0.2
+    truth = Z.render_images(dif, normal, mask, novel, xy=xy) + Z.render_images(spec, normal, mask, novel, xy=xy)
+    pred = np.stack([np.asarray(m.render(normal, Z.VIEW, li, xy, color=np.ones(3), mask=mask)) for li in novel])
+    vm = Z.valid_masks(normal, mask, novel, 0.1)
+    assert Z.relative_rms(pred, truth, vm) < 0.1
+
+
+# --------------------------------------------------------------------------- full-size protocols (slow)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which", ["metal", "oren_nayar"])
+def test_homogeneous_protocol_full(which):
+    brdf = Z.metallic_brdf if which == "metal" else Z.oren_nayar_brdf
+    r = Z.homogeneous_protocol(brdf, n_px=100, centers=(250, 500, 1000), lafortune_lobes=(1, 3, 6))
+    print(which, r["valid"], r["all"])
+    v = r["valid"]
+    assert v["rbf1000"] < v["ward"]
+    assert v["rbf1000"] < min(v[f"lafortune{k}"] for k in (1, 3, 6))
+
+
+@pytest.mark.slow
+def test_hemisphere_protocol_full():
+    r = Z.hemisphere_protocol(n_px=100, centers=(500, 1000, 2000), no_sharing=(5, 50, 150), sharing_centers=2000)
+    print(r["valid"], r["all"])
+    v = r["valid"]
+    assert v["sharing5_rbf2000"] < v["nosharing5"]
