@@ -108,6 +108,7 @@ from ._scene import (
     visibility_sh as visibility_sh,
     visibility_weighted_irradiance as visibility_weighted_irradiance,
 )
+from ._practical import PracticalTerms as PracticalTerms, practical_terms as practical_terms
 from ._rbf import (
     RBFModel as RBFModel,
     rbf_evaluate as rbf_evaluate,

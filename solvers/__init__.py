@@ -1,5 +1,34 @@
-"""Inverse problems built on jaxsh."""
+"""solvers: inverse rendering on top of jaxsh (R&H 2001 sec. 6; Zickler et al. 2006).
+
+Results are equinox Modules with the estimate, a `Status`, iterations, RMS
+residual and standard errors; see DESIGN.md.
+"""
+
+from ._data import (
+    Lighting as Lighting,
+    Observations as Observations,
+    Status as Status,
+    TorranceSparrow as TorranceSparrow,
+    observations as observations,
+    practical_terms_for as practical_terms_for,
+    predict as predict,
+    status_name as status_name,
+)
+from ._brdf import BRDFResult as BRDFResult, fit_brdf as fit_brdf
+from ._synthetic import (
+    SyntheticCapture as SyntheticCapture,
+    default_sources as default_sources,
+    sphere_capture as sphere_capture,
+    view_cameras as view_cameras,
+)
 from ._sharing import SharingFit as SharingFit, fit_sharing as fit_sharing
+from ._lighting import LightingResult as LightingResult, inverse_lighting as inverse_lighting
+from ._factorize import (
+    FactorizationResult as FactorizationResult,
+    SourceEstimate as SourceEstimate,
+    factorize as factorize,
+    find_source as find_source,
+)
 from ._sharing import (
     DichromaticReflectance as DichromaticReflectance,
     OneImageReflectance as OneImageReflectance,
