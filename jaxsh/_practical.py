@@ -85,7 +85,10 @@ class PracticalTerms(eqx.Module):
 
     def __call__(self, kd, ks, mu, sigma) -> Float[Array, "N C"]:
         dt = self.cos_o.dtype
-        return jnp.asarray(kd, dt) * self.diffuse_unit() + jnp.asarray(ks, dt) * self.specular_unit(mu, sigma)
+        kd, ks = jnp.asarray(kd, dt), jnp.asarray(ks, dt)
+        kd = kd.reshape((1,) * (2 - kd.ndim) + kd.shape)
+        ks = ks.reshape((1,) * (2 - ks.ndim) + ks.shape)
+        return kd * self.diffuse_unit() + ks * self.specular_unit(mu, sigma)
 
 
 def practical_terms(

@@ -204,15 +204,19 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         r = sw * (_model(terms, kd, ks, mu, sigma, texel) - b)
         return r, (kd, ks, bad)
 
+    # The optimizers run in the default float dtype (optimistix's simplex mixes its own scalars into the
+    # state: a float32 problem with x64 enabled would not trace); the model runs in the data's dtype.
+    pdt = jnp.asarray(0.0).dtype
+
     def objective(u, _):
-        r, _aux = profiled(u)
-        return jnp.sum(r * r)
+        r, _aux = profiled(u.astype(dt))
+        return jnp.sum(r * r).astype(pdt)
 
     # Start: best grid point (vmapped), then the simplex of R&H sec. 6.1.
-    grid_vals = jax.vmap(lambda u: objective(u, None))(u_grid)
-    u0 = u_grid[jnp.argmin(jnp.where(jnp.isfinite(grid_vals), grid_vals, jnp.inf))]
+    grid_vals = jax.vmap(lambda u: objective(u, None))(u_grid.astype(pdt))
+    u0 = u_grid.astype(pdt)[jnp.argmin(jnp.where(jnp.isfinite(grid_vals), grid_vals, jnp.inf))]
     nm = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), u0, max_steps=max_steps, throw=False)
-    u = nm.value
+    u = nm.value.astype(dt)
     steps = nm.stats["num_steps"]
     ok = nm.result == optx.RESULTS.successful
     _, (kd, ks, bad) = profiled(u)
@@ -220,15 +224,16 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         c = b.shape[1]
 
         def resid(p, _):
+            p = p.astype(dt)
             mu, sigma = _to_natural(p[2 * c :], fresnel)
-            return (sw * (_model(terms, p[:c], p[c : 2 * c], mu, sigma, texel) - b)).reshape(-1)
+            return (sw * (_model(terms, p[:c], p[c : 2 * c], mu, sigma, texel) - b)).reshape(-1).astype(pdt)
 
-        p0 = jnp.concatenate([kd, ks, u])
+        p0 = jnp.concatenate([kd, ks, u]).astype(pdt)
         lm = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0, max_steps=max_steps,
                                 throw=False)
         p1 = lm.value
         better = jnp.sum(resid(p1, None) ** 2) <= jnp.sum(resid(p0, None) ** 2)
-        p = jnp.where(better & jnp.all(jnp.isfinite(p1)), p1, p0)
+        p = jnp.where(better & jnp.all(jnp.isfinite(p1)), p1, p0).astype(dt)
         kd, ks, u = p[:c], p[c : 2 * c], p[2 * c :]
         steps = steps + lm.stats["num_steps"]
         ok = ok & (lm.result == optx.RESULTS.successful)
@@ -244,7 +249,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         tiny = evals <= jnp.finfo(dt).eps * jnp.max(evals) * jtj.shape[0]
         inv = jnp.where(tiny, 0.0, 1.0 / jnp.where(tiny, 1.0, evals))
         cov = (evecs * inv[None, :]) @ evecs.T * s2
-        undetermined = (jnp.abs(evecs) * tiny[None, :]).max(axis=1) > 1e-6
+        undetermined = (jnp.abs(evecs) * tiny.astype(dt)[None, :]).max(axis=1) > 1e-6
         return cov, undetermined
 
     def nat_params(th):

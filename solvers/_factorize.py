@@ -102,7 +102,7 @@ def _small_spd_solve(m, r):
     custom call (those deadlock or stall on re-execution inside XLA:CPU loops, measured)."""
     k = m.shape[-1]
     scale = jnp.maximum(jnp.max(jnp.abs(jnp.diagonal(m, axis1=-2, axis2=-1)), -1), jnp.finfo(m.dtype).tiny)
-    m = m + (jnp.finfo(m.dtype).eps * 16) * scale[..., None, None] * jnp.eye(k, dtype=m.dtype)
+    m = m + (jnp.finfo(m.dtype).eps * 16) * scale[..., None, None] * jnp.eye(k, dtype=m.dtype).reshape((1,) * (m.ndim - 2) + (k, k))
     a = jnp.concatenate([m, r[..., None]], -1)
     for i in range(k):
         piv = a[..., i, i]
@@ -501,15 +501,18 @@ def _unpack(p, c):
 def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     c = ks0.shape[0]
 
+    dt = jt.b.dtype
+    pdt = jnp.asarray(0.0).dtype  # optimistix's simplex state uses the default float dtype
+
     def objective(p, _):
-        ks, sigma = _unpack(p, c)
+        ks, sigma = _unpack(p.astype(dt), c)
         rss, _, _ = _joint_rss(jt, ks, sigma, mu, d, lmax)
-        return jnp.sum(rss) / jnp.sum(jt.bl.g.bb)
+        return (jnp.sum(rss) / jnp.sum(jt.bl.g.bb)).astype(pdt)
 
     ks_c = jnp.clip(ks0, 1e-4, 1 - 1e-4)
-    p0 = jnp.concatenate([jnp.log(ks_c / (1 - ks_c)), jnp.log(sigma0)[None]])
+    p0 = jnp.concatenate([jnp.log(ks_c / (1 - ks_c)), jnp.log(sigma0)[None]]).astype(pdt)
     sol = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), p0, max_steps=max_steps, throw=False)
-    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+    return sol.value.astype(dt), sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
 @eqx.filter_jit

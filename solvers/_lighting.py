@@ -173,7 +173,7 @@ def _solve_channels(ata, atb, bb, count, rcond, ridge):
     # rss = b'b - 2 x'A'b + x'A'A x (exact for any x)
     rss = bb - 2 * jnp.sum(x * atb, -1) + jnp.einsum("ci,cij,cj->c", x, ata, x)
     rss = jnp.maximum(rss, 0.0)
-    n_free = jnp.sum(keep, -1)
+    n_free = jnp.sum(keep, -1).astype(rss.dtype)
     s2 = rss / jnp.maximum(count - n_free, 1.0)
     var = jnp.einsum("cij,cj->ci", evecs**2, inv**2 * jnp.where(keep, evals, 0.0))
     null_weight = jnp.einsum("cij,cj->ci", evecs**2, (~keep).astype(evecs.dtype))

@@ -1,0 +1,360 @@
+"""Inverse rendering (R&H 2001 sec. 6): BRDF, lighting, factorization, textures and shadows.
+
+The captures are rendered by `jaxsh.render_reference` (the full Torrance-Sparrow
+BRDF integrated over the disk sources by quadrature, the directional source
+exactly), not by the practical model the solvers fit, so the recovery
+tolerances below include the model error of eq. 24 (~1 % RMS on these spheres).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsh
+import solvers
+
+TRUTH = solvers.TorranceSparrow(jnp.array([0.6, 0.45, 0.3]), jnp.array([0.3, 0.3, 0.3]), jnp.asarray(1.6), jnp.asarray(0.1))
+SIZE = 64
+
+
+def _noisy(cap, noise, seed=1):
+    rng = np.random.default_rng(seed)
+    out = []
+    for img, gb in zip(cap.clean, cap.gbuffers):
+        m = np.asarray(gb.mask)
+        x = img.copy()
+        x[m] += noise * np.sqrt(np.mean(img[m] ** 2)) * rng.standard_normal(x[m].shape)
+        out.append(x)
+    return out
+
+
+@pytest.fixture(scope="module")
+def capture():
+    return solvers.sphere_capture(TRUTH, size=SIZE, noise=0.0)
+
+
+@pytest.fixture(scope="module")
+def obs_clean(capture):
+    return solvers.observations(capture.gbuffers, capture.clean)
+
+
+@pytest.fixture(scope="module")
+def obs_noisy(capture):
+    return solvers.observations(capture.gbuffers, _noisy(capture, 0.01))
+
+
+def _rel(a, b):
+    return abs(float(a) - float(b)) / abs(float(b))
+
+
+# --------------------------------------------------------------------------- the factored model
+
+
+def test_practical_terms_equal_render_practical(rng):
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = rng.normal(size=(500, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    sh = rng.normal(size=(jaxsh.num_coeffs(8), 3))
+    fd = np.array([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
+    fe = rng.uniform(size=(2, 3))
+    vis = dict(transfer=rng.normal(size=(500, 9)), fast_visibility=rng.uniform(size=(500, 2)),
+               reflected_visibility=rng.uniform(size=500))
+    kd = rng.uniform(size=(500, 3))  # a texture
+    ks = np.array([0.2, 0.3, 0.1])
+    for kw in ({}, vis):
+        terms = jaxsh.practical_terms(n, v, slow_sh=sh, fast_directions=fd, fast_energy=fe, **kw)
+        a = terms(kd, ks, 1.5, 0.12)
+        b = jaxsh.render_practical(n, v, kd, ks, 1.5, 0.12, slow_sh=sh, fast_directions=fd, fast_energy=fe, **kw).total
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="transfer"):
+        jaxsh.practical_terms(n, v, slow_sh=sh, transfer=np.zeros((3, 9)))
+
+
+# --------------------------------------------------------------------------- inverse BRDF (sec. 6.1)
+
+
+def _check_brdf(res, truth, tol):
+    kd, ks = np.asarray(res.brdf.kd), np.asarray(res.brdf.ks)
+    np.testing.assert_allclose(kd, np.asarray(truth.kd), rtol=tol["kd"])
+    np.testing.assert_allclose(ks, np.asarray(truth.ks), rtol=tol["ks"])
+    assert _rel(res.brdf.sigma, truth.sigma) < tol["sigma"]
+    assert _rel(res.brdf.mu, truth.mu) < tol["mu"]
+
+
+TOL = {"kd": 0.02, "ks": 0.02, "sigma": 0.05, "mu": 0.10}
+
+
+def test_fit_brdf_known_lighting_noise_free(capture, obs_clean):
+    res = solvers.fit_brdf(obs_clean, capture.lighting)
+    assert solvers.status_name(res.status) == "converged"
+    _check_brdf(res, TRUTH, TOL)
+    assert float(res.rel_rms) < 0.03  # the practical model's error against the reference renderer
+    assert np.all(np.isfinite(np.asarray(res.std_errors.kd)))
+
+
+def test_fit_brdf_known_lighting_one_percent_noise(capture, obs_noisy):
+    res = solvers.fit_brdf(obs_noisy, capture.lighting)
+    assert solvers.status_name(res.status) == "converged"
+    _check_brdf(res, TRUTH, {k: 2 * v for k, v in TOL.items()})
+    # noise raises the residual by about the noise level, in quadrature
+    assert 0.005 < float(res.rel_rms) < 0.04
+
+
+def test_fit_brdf_float32(capture, obs_clean):
+    obs32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, obs_clean)
+    light32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), capture.lighting)
+    res = solvers.fit_brdf(obs32, light32)
+    assert res.brdf.kd.dtype == jnp.float32 and res.brdf.sigma.dtype == jnp.float32
+    _check_brdf(res, TRUTH, TOL)
+
+
+def test_fit_brdf_without_fresnel_and_from_an_initial_guess(capture, obs_clean):
+    res = solvers.fit_brdf(obs_clean, capture.lighting, fresnel=False, init=(1.5, 0.2))
+    assert res.brdf.mu is None and res.std_errors.mu is None
+    assert _rel(res.brdf.sigma, TRUTH.sigma) < 0.1  # F = 1 is a model error here (true mu = 1.6)
+
+
+def test_sigma_is_ill_conditioned_under_low_frequency_lighting():
+    """R&H sec. 3 / 6.3: with only an area source, blurring the lighting and sharpening the lobe
+    barely change the images, so sigma's standard error grows sharply; a directional source fixes it."""
+    disks, directional = solvers.default_sources()
+    errs = {}
+    for name, src in (("area+directional", (disks, directional)), ("area only", (disks, None))):
+        cap = solvers.sphere_capture(TRUTH, size=32, noise=0.01, sources=src, disk_nodes=(32, 64))
+        res = solvers.fit_brdf(solvers.observations(cap.gbuffers, cap.images), cap.lighting)
+        errs[name] = float(res.std_errors.sigma) / float(res.brdf.sigma)
+    assert errs["area only"] > 10 * errs["area+directional"], errs
+
+
+# --------------------------------------------------------------------------- inverse lighting (sec. 6.2)
+
+
+def test_inverse_lighting_is_exact_for_data_of_its_own_model(rng):
+    """Eq. 25 (with the filter, deconvolve=True) recovers band-limited lighting to round-off, with shadows."""
+    cap_cams = solvers.view_cameras(3, 24)
+    gbs = [jaxsh.sphere_gbuffer(c, np.zeros(3), 1.0) for c in cap_cams]
+    truth_sh = rng.normal(size=(jaxsh.num_coeffs(6), 3))
+    per_view = []
+    for gb in gbs:
+        m = np.asarray(gb.mask)
+        extra = dict(transfer=rng.normal(size=m.shape + (9,)), reflected_visibility=rng.uniform(0.5, 1.0, size=m.shape))
+        img = np.asarray(jaxsh.render_practical(gb.normal, gb.view, TRUTH.kd, TRUTH.ks, TRUTH.mu, TRUTH.sigma,
+                                                slow_sh=truth_sh, mask=gb.mask, **extra).total)
+        per_view.append((img, extra))
+    obs = solvers.observations(gbs, [p[0] for p in per_view], transfer=[p[1]["transfer"] for p in per_view],
+                               reflected_visibility=[p[1]["reflected_visibility"] for p in per_view])
+    res = solvers.inverse_lighting(obs, TRUTH, 6, deconvolve=True)
+    np.testing.assert_allclose(res.coeffs, truth_sh, atol=1e-8 * np.abs(truth_sh).max())
+    # the RSS comes from the normal equations (b'b - x'A'b), so its floor is sqrt(eps) ~ 1e-8, not eps
+    assert float(res.rel_rms) < 1e-6
+    assert np.all(np.asarray(res.supported_lmax) == 6)
+    assert solvers.status_name(res.status) == "converged"
+
+
+def test_inverse_lighting_from_reference_images(capture, obs_noisy):
+    res = solvers.inverse_lighting(obs_noisy, TRUTH, 12)
+    truth = np.asarray(jaxsh.filter_lighting_microfacet(capture.lighting.total_sh(12), TRUTH.sigma))
+    rec = np.asarray(res.coeffs)
+    for c in range(3):
+        assert np.corrcoef(rec[:9, c], truth[:9, c])[0, 1] > 0.99
+    # the whole l <= 12 filtered lighting, to the accuracy the band limit allows
+    assert np.linalg.norm(rec - truth) / np.linalg.norm(truth) < 0.2
+    assert np.all(np.asarray(res.supported_lmax) == 12)
+    snr = np.asarray(res.band_snr)
+    assert snr[0, 0] > snr[12, 0]  # higher bands are noisier
+
+
+def test_inverse_lighting_lambertian_determines_only_l_le_2(obs_noisy):
+    """R&H sec. 3: a Lambertian object is a low-pass filter; inverse lighting recovers l <= 2 only."""
+    lamb = solvers.TorranceSparrow(TRUTH.kd, jnp.zeros(3), TRUTH.mu, TRUTH.sigma)
+    res = solvers.inverse_lighting(obs_noisy, lamb, 6)
+    assert np.all(np.asarray(res.supported_lmax) == 2)
+    assert np.all(np.isfinite(np.asarray(res.std_errors[:9])))
+    assert np.all(np.isinf(np.asarray(res.std_errors[9:])))
+    assert not np.any(np.asarray(res.determined[9:]))
+    assert solvers.status_name(res.status) == "ill_conditioned"
+    sv = np.asarray(res.singular_values)
+    assert np.all(sv[:, 9:] < 1e-6 * sv[:, :1])
+
+
+# --------------------------------------------------------------------------- eq. 26 and factorization (sec. 6.3)
+
+
+@pytest.mark.parametrize("sigma", [0.08, 0.15])
+def test_find_source_recovers_sigma_of_a_filtered_delta(sigma):
+    """A delta source filtered by exp(-(sigma l)^2) and truncated at l*=24, plus a smooth background:
+    find_source locates it and eq. 26 (band-limit corrected) returns sigma."""
+    d = np.array([0.3, -0.4, 0.866])
+    d /= np.linalg.norm(d)
+    lmax = 24
+    c = jaxsh.filter_lighting_microfacet(jaxsh.directional_light_sh(d[None], np.array([[2.0, 1.0, 0.5]]), lmax), sigma)
+    c = c + jaxsh.disk_light_sh(np.array([0.0, 0.0, -1.0]), 1.0, np.array([0.1, 0.1, 0.1]), lmax)
+    src = solvers.find_source(c)
+    assert np.arccos(np.clip(np.dot(np.asarray(src.direction), d), -1, 1)) < 0.01
+    assert _rel(src.sigma, sigma) < 0.03
+    np.testing.assert_allclose(np.asarray(src.energy), [2.0, 1.0, 0.5], rtol=0.1)
+    # a user region (fig. 10's box) that contains the source gives the same answer
+    src2 = solvers.find_source(c, region=(d + 0.05, 0.6))
+    assert _rel(src2.sigma, sigma) < 0.05
+
+
+@pytest.fixture(scope="module")
+def factorization(obs_noisy):
+    return solvers.factorize(obs_noisy, 12)
+
+
+def test_factorize_recovers_brdf_under_unknown_lighting(factorization):
+    res = factorization
+    assert solvers.status_name(res.status) == "converged"
+    s = np.asarray(TRUTH.kd + TRUTH.ks)
+    np.testing.assert_allclose(np.asarray(res.brdf.ks), np.asarray(TRUTH.ks) / s, atol=0.03)
+    np.testing.assert_allclose(np.asarray(res.brdf.kd), np.asarray(TRUTH.kd) / s, atol=0.03)
+    np.testing.assert_allclose(np.asarray(res.brdf.kd + res.brdf.ks), 1.0, atol=1e-12)
+    assert _rel(res.brdf.sigma, TRUTH.sigma) < 0.15
+    assert np.all(np.isfinite(np.asarray(res.std_errors.ks))) and np.isfinite(float(res.std_errors.sigma))
+
+
+def test_factorize_lighting_correlates_with_truth(capture, factorization):
+    rec = np.asarray(factorization.lighting.total_sh(2))
+    tru = np.asarray(capture.lighting.total_sh(2))
+    for c in range(3):
+        assert np.corrcoef(rec[:, c], tru[:, c])[0, 1] > 0.99
+    # the found source is the true directional source
+    d_true = np.asarray(capture.directional[0][0])
+    assert np.arccos(np.clip(np.dot(np.asarray(factorization.source.direction), d_true), -1, 1)) < 0.05
+
+
+def test_factorize_predicts_a_held_out_view_under_a_new_light(factorization):
+    """Re-render a view not used for fitting, under a new directional source, against the reference.
+
+    The absolute scale per channel (lighting colour times albedo) is unrecoverable (R&H sec. 6.3),
+    so one least-squares scale per channel is applied before comparing."""
+    cam = solvers.view_cameras(1, SIZE, azimuths=[2.4], elevation=0.2)[0]
+    gb = jaxsh.sphere_gbuffer(cam, np.zeros(3), 1.0)
+    m = np.asarray(gb.mask)
+    n, v = np.asarray(gb.normal)[m], np.asarray(gb.view)[m]
+    d_new = np.array([[0.6, 0.7, 0.4]]) / np.linalg.norm([0.6, 0.7, 0.4])
+    e_new = np.array([[2.0, 2.0, 2.0]])
+    ref = np.asarray(jaxsh.render_reference(n, v, TRUTH.kd, TRUTH.ks, TRUTH.mu, TRUTH.sigma, directional=(d_new, e_new)))
+    pred = np.asarray(solvers.predict(factorization.brdf, solvers.Lighting(None, jnp.asarray(d_new), jnp.asarray(e_new)), n, v))
+    scale = np.sum(pred * ref, 0) / np.sum(pred * pred, 0)
+    err = np.sqrt(np.mean((pred * scale - ref) ** 2)) / np.sqrt(np.mean(ref**2))
+    assert err < 0.05, err
+
+
+def test_factorize_options(obs_noisy):
+    r0 = solvers.factorize(obs_noisy, 8, find_sigma=False, refine=False)
+    assert bool(jnp.isnan(r0.brdf.sigma)) and r0.source is None
+    r1 = solvers.factorize(obs_noisy, 8, fresnel=False, refine=False)
+    assert r1.brdf.mu is None and np.isfinite(float(r1.brdf.sigma))
+    with pytest.raises(ValueError, match="lmax"):
+        solvers.factorize(obs_noisy, 2)
+    with pytest.raises(ValueError, match="find_sigma"):
+        solvers.factorize(obs_noisy, 8, find_sigma=False, refine=True)
+
+
+# --------------------------------------------------------------------------- textures and shadows (sec. 6.4)
+
+
+def _floor_and_wall():
+    import trimesh
+
+    box = trimesh.creation.box(extents=[2.0, 2.0, 0.2])
+    box.apply_translation([0.0, 0.0, -0.1])
+    wall = trimesh.creation.box(extents=[0.2, 2.0, 1.0])
+    wall.apply_translation([0.0, 0.0, 0.6])
+    return trimesh.util.concatenate([box, wall])
+
+
+def test_textured_kd_on_a_self_shadowing_mesh():
+    """Known lighting, Kd(x) a 4x4 checker texture on a floor shadowed by a wall (R&H sec. 6.4).
+
+    Reference images ray-trace every quadrature direction; the fit uses the practical model with
+    transfer vectors, the shadow of the directional source and the reflected-ray visibility."""
+    mesh = _floor_and_wall()
+    rng = np.random.default_rng(7)
+    tex = rng.uniform(0.25, 0.8, size=(17, 3))  # 16 floor cells + the wall
+    ks, mu, sigma = np.array([0.25, 0.25, 0.25]), 1.5, 0.2
+    d1 = np.array([0.7, 0.2, 0.69]) / np.linalg.norm([0.7, 0.2, 0.69])
+    d2 = np.array([-0.6, 0.3, 0.74]) / np.linalg.norm([-0.6, 0.3, 0.74])
+    r1, l1, e2 = 0.4, np.array([1.2, 1.1, 1.0]), np.array([2.5, 2.5, 2.5])
+    slow = jaxsh.disk_light_sh(d1, r1, l1, 24)
+    gbs, imgs, extra = [], [], {"transfer": [], "fast_visibility": [], "reflected_visibility": [], "texel": []}
+    eyes = [np.array([0.3, -2.0, 4.0]), np.array([2.0, 1.5, 3.5]), np.array([-2.5, -1.0, 3.0])]
+    for eye in eyes:
+        cam = jaxsh.OrthographicCamera(0.08, 26, 26, jaxsh.look_at(eye, np.zeros(3), np.array([0, 0, 1.0])))
+        g = jaxsh.mesh_gbuffer(cam, mesh, smooth=False)
+        m = np.asarray(g.mask)
+        pts, nrm, vw = (np.asarray(a)[m] for a in (g.position, g.normal, g.view))
+        on_floor = pts[:, 2] < 1e-6
+        cell = np.clip(((pts[:, 0] + 1) * 2).astype(int), 0, 3) * 4 + np.clip(((pts[:, 1] + 1) * 2).astype(int), 0, 3)
+        tid = np.where(on_floor, cell, 16)
+        ref = np.asarray(jaxsh.render_reference(nrm, vw, tex[tid], ks, mu, sigma, disks=(d1[None], np.array([r1]), l1[None]),
+                                                directional=(d2[None], e2[None]), disk_nodes=(24, 48), mesh=mesh, points=pts))
+        img = np.zeros(m.shape + (3,))
+        img[m] = ref
+        full = lambda x, tail: (lambda out: (out.__setitem__(m, x), out)[1])(np.zeros(m.shape + tail, x.dtype))  # noqa: E731
+        extra["transfer"].append(full(np.asarray(jaxsh.visibility_sh(mesh, pts, nrm, 2, n_dirs=1024)), (9,)))
+        extra["fast_visibility"].append(full(np.asarray(jaxsh.directional_visibility(mesh, pts, nrm, d2[None])), (1,)))
+        extra["reflected_visibility"].append(full(np.asarray(jaxsh.reflected_visibility(mesh, pts, nrm, vw)), ()))
+        extra["texel"].append(full(tid.astype(np.int64), ()))
+        gbs.append(g)
+        imgs.append(img)
+    obs = solvers.observations(gbs, imgs, n_texels=17, **extra)
+    light = solvers.Lighting(slow, jnp.asarray(d2[None]), jnp.asarray(e2[None]))
+    res = solvers.fit_brdf(obs, light, textured="kd")
+    seen = np.asarray(res.texel_count) > 0
+    assert seen.sum() >= 14
+    kd = np.asarray(res.brdf.kd)
+    err = np.sqrt(np.mean((kd[seen] - tex[seen]) ** 2)) / np.sqrt(np.mean(tex[seen] ** 2))
+    assert err < 0.03, err
+    assert np.all(np.isinf(np.asarray(res.std_errors.kd)[~seen]))
+    assert _rel(res.brdf.sigma, sigma) < 0.15
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_observations_reject_bad_input(capture):
+    gbs, imgs = capture.gbuffers, capture.clean
+    empty = [np.zeros(np.asarray(g.mask).shape, bool) for g in gbs]
+    with pytest.raises(ValueError, match="no valid pixel"):
+        solvers.observations(gbs, imgs, masks=empty)
+    bad = [x.copy() for x in imgs]
+    m = np.asarray(gbs[1].mask)
+    bad[1][np.argwhere(m)[0][0], np.argwhere(m)[0][1], 0] = np.nan
+    with pytest.raises(ValueError, match=r"images\[1\].*non-finite"):
+        solvers.observations(gbs, bad)
+    dropped = solvers.observations(gbs, bad, invalid="drop")
+    full = solvers.observations(gbs, imgs)
+    assert dropped.n_samples == full.n_samples - 1
+    sat = solvers.observations(gbs, imgs, saturation=float(np.percentile(imgs[0][np.asarray(gbs[0].mask)], 99)))
+    assert sat.n_samples < full.n_samples and np.all(np.isfinite(np.asarray(sat.values)))
+    with pytest.raises(ValueError, match="one image per G-buffer"):
+        solvers.observations(gbs, imgs[:2])
+    with pytest.raises(ValueError, match=r"images\[0\]"):
+        solvers.observations(gbs, [imgs[0][:-1]] + imgs[1:])
+    with pytest.raises(ValueError, match="invalid"):
+        solvers.observations(gbs, imgs, invalid="ignore")
+    # to_images round trip
+    back = full.to_images(full.values)
+    for k in range(3):
+        np.testing.assert_array_equal(back[k][np.asarray(gbs[k].mask)], imgs[k][np.asarray(gbs[k].mask)])
+
+
+def test_solvers_report_failures(capture, obs_clean):
+    res = solvers.fit_brdf(obs_clean, capture.lighting, max_steps=2, refine=False)
+    assert solvers.status_name(res.status) == "max_steps_reached"
+    with pytest.raises(ValueError, match="texel"):
+        solvers.fit_brdf(obs_clean, capture.lighting, textured="kd")
+    with pytest.raises(ValueError, match="textured"):
+        solvers.fit_brdf(obs_clean, capture.lighting, textured="ks")
+    tex = solvers.TorranceSparrow(jnp.ones((4, 3)), jnp.ones((4, 3)), TRUTH.mu, TRUTH.sigma)
+    with pytest.raises(ValueError, match="homogeneous"):
+        solvers.inverse_lighting(obs_clean, tex, 4)
+    with pytest.raises(ValueError, match="Lighting needs"):
+        solvers.Lighting()
+    with pytest.raises(ValueError, match="Observations"):
+        solvers.fit_brdf(capture.clean, capture.lighting)
