@@ -17,91 +17,139 @@ def _demo(args) -> int:
         return _demo_x64(args)
 
 
+_MATERIALS = [
+    # R&H 2001 fig. 11 (known-lighting values, K_d + K_s = 1): teflon, delrin, painted
+    ("teflon", [0.89, 0.89, 0.89], [0.11, 0.11, 0.11], 1.78, 0.12),
+    ("delrin", [0.87, 0.87, 0.87], [0.13, 0.13, 0.13], 1.44, 0.10),
+    ("painted", [0.62, 0.71, 0.62], [0.29, 0.29, 0.29], 1.38, 0.15),
+]
+
+
 def _demo_x64(args) -> int:
     import jax.numpy as jnp
     import numpy as np
 
     import jaxsh
+    import solvers
+    from solvers._fit_manifest import _brdf_json, _json
 
-    from ._synthetic import procedural_sky
-
-    h, w = args.height, 2 * args.height
     t0 = time.perf_counter()
-    sky = procedural_sky(h, w)
-    report = {"map": {"height": h, "width": w}, "projection": [], "rotation": {}}
-    print(f"jaxsh demo: procedural HDR sky {h}x{w}x3 (+z up), spherical-harmonic analysis and rotation\n")
-    print(f"{'lmax':>5} {'coeffs':>7} {'rel. L2 error of reconstruction':>32} {'round trip (band-limited)':>26} {'warm time [s]':>14}")
+    print("jaxsh demo: inverse rendering of synthetic spheres (R&H 2001 sec. 6, fig. 11 materials)")
+    print(f"  {args.views} orthographic views of {args.size}x{args.size}, {args.noise:.0%} noise, "
+          "area source + ground bounce + directional source;")
+    print("  images by the reference renderer (full Torrance-Sparrow, quadrature over the area sources)\n")
+    report = {"materials": [], "settings": {"size": args.size, "views": args.views, "noise": args.noise, "lmax": args.lmax}}
     images = {}
-    for lmax in args.lmax:
-        jaxsh.project_latlong(sky, lmax).block_until_ready()  # compile
+    ok = True
+    for k, (name, kd, ks, mu, sigma) in enumerate(_MATERIALS[: args.materials]):
+        truth = solvers.TorranceSparrow(jnp.asarray(kd), jnp.asarray(ks), jnp.asarray(mu), jnp.asarray(sigma))
         t = time.perf_counter()
-        c = jaxsh.project_latlong(sky, lmax).block_until_ready()
-        dt = time.perf_counter() - t
-        rec = jaxsh.synthesize_latlong(c, h, w)
-        wts = jaxsh.latlong_weights(h, w)[..., None]
-        err = float(jnp.sqrt(jnp.sum(wts * (rec - sky) ** 2) / jnp.sum(wts * sky**2)))
-        back = jaxsh.project_latlong(rec, lmax)
-        rt = float(jnp.max(jnp.abs(back - c)))
-        print(f"{lmax:>5} {c.shape[0]:>7} {err:>32.4f} {rt:>26.2e} {dt:>14.4f}")
-        report["projection"].append({"lmax": lmax, "rel_l2_error": err, "round_trip_max_abs": rt, "time_s": dt})
-        images[f"sky_lmax{lmax:03d}"] = np.asarray(rec)
-    # Rotation: rotate the coefficients, compare with projecting the rotated map.
-    lmax = max(args.lmax)
-    R = jaxsh.rotation_from_euler_zyz(0.7, 1.1, -0.4)
-    c = jaxsh.project_latlong(sky, lmax)
-    jaxsh.rotate_sh(c, R).block_until_ready()  # compile
-    t = time.perf_counter()
-    c_rot = jaxsh.rotate_sh(c, R).block_until_ready()
-    dt = time.perf_counter() - t
-    c_rot_map = jaxsh.project_latlong(procedural_sky(h, w, rotation=R), lmax)
-    rot_err = float(jnp.linalg.norm(c_rot - c_rot_map) / jnp.linalg.norm(c_rot_map))
-    print(f"\nrotate_sh at lmax {lmax}: {dt * 1e3:.2f} ms; rotate-then-analyse vs analyse-rotated-map "
-          f"relative error {rot_err:.2e}")
-    report["rotation"] = {"lmax": lmax, "time_s": dt, "rel_error_vs_rotated_map": rot_err}
-    # Reflection as convolution (R&H 2001): irradiance from 9 coefficients, a Phong lobe from the filtered
-    # lighting, both against brute-force integration of the reflection equation over the sampled sky.
-    normals = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, 0, -1.0], [0.5, 0.3, 0.81]])
-    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    wts = np.asarray(jaxsh.latlong_weights(h, w)).reshape(-1)
-    dirs = np.asarray(jaxsh.latlong_directions(h, w)).reshape(-1, 3)
-    vals = np.asarray(sky).reshape(-1, 3)
-    cos = np.clip(normals @ dirs.T, 0, None)  # (4, HW)
-    e_brute = (cos * wts) @ vals
-    e_sh = np.asarray(jaxsh.irradiance(jaxsh.project_latlong(sky, 2), normals))
-    s_exp = 64.0
-    lob = (s_exp + 1) / (2 * np.pi) * cos**s_exp
-    p_brute = (lob * wts) @ vals
-    lp = max(args.lmax)
-    c_lp = jaxsh.project_latlong(sky, lp)
-    p_sh = np.asarray(jaxsh.real_sh(normals, lp)) @ np.asarray(jaxsh.convolve(c_lp, jaxsh.phong_spectrum(jnp.asarray(s_exp), lp)))
-    err_e = float(np.abs(e_sh - e_brute).max() / np.abs(e_brute).max())
-    err_p = float(np.abs(p_sh - p_brute).max() / np.abs(p_brute).max())
-    _, lstar_lamb = jaxsh.recoverable_orders(jaxsh.lambertian_spectrum(40), 0.01)
-    _, lstar_phong = jaxsh.recoverable_orders(jaxsh.phong_spectrum(jnp.asarray(s_exp), 40), 0.01)
-    print("\nreflection as convolution (B_lm = A_l L_lm) vs brute-force integration over the sky's pixels:")
-    print(f"  Lambertian irradiance, 9 coefficients (eq. 21): max relative error {err_e:.2%} (the 9-term truncation; a bright sun is its worst case)")
-    print(f"  Phong s={s_exp:g} lobe, lmax {lp} filtered lighting (eqs. 17-18): max relative error {err_p:.1e}")
-    print(f"  recoverable lighting orders at 1% noise: Lambertian l* = {lstar_lamb}, Phong s={s_exp:g} l* = {lstar_phong}")
-    report["convolution"] = {"irradiance_rel_error": err_e, "phong_rel_error": err_p, "phong_s": s_exp,
-                             "lstar_lambertian": lstar_lamb, "lstar_phong": lstar_phong}
-    images["sky"] = np.asarray(sky)
-    images[f"sky_rotated_lmax{lmax:03d}"] = np.asarray(jaxsh.synthesize_latlong(c_rot, h, w))
+        cap = solvers.sphere_capture(truth, size=args.size, n_views=args.views, noise=args.noise, seed=k)
+        t_render = time.perf_counter() - t
+        obs = solvers.observations(cap.gbuffers, cap.images)
+        t = time.perf_counter()
+        known = solvers.fit_brdf(obs, cap.lighting)
+        t_known = time.perf_counter() - t
+        t = time.perf_counter()
+        il = solvers.inverse_lighting(obs, truth, args.lmax)
+        t_il = time.perf_counter() - t
+        t = time.perf_counter()
+        fac = solvers.factorize(obs, args.lmax)
+        t_fac = time.perf_counter() - t
+        tl = np.asarray(jaxsh.filter_lighting_microfacet(cap.lighting.total_sh(args.lmax), truth.sigma))
+        corr_il = min(np.corrcoef(np.asarray(il.coeffs)[:9, c], tl[:9, c])[0, 1] for c in range(3))
+        tf = np.asarray(cap.lighting.total_sh(2))
+        corr_fac = min(np.corrcoef(np.asarray(fac.lighting.total_sh(2))[:, c], tf[:, c])[0, 1] for c in range(3))
+        # held-out view under a new directional light (per-channel scale fitted for the factorization)
+        cam = solvers.view_cameras(1, args.size, azimuths=[2.4], elevation=0.2)[0]
+        gb = jaxsh.sphere_gbuffer(cam, jnp.zeros(3), jnp.asarray(1.0))
+        m = np.asarray(gb.mask)
+        n_, v_ = np.asarray(gb.normal)[m], np.asarray(gb.view)[m]
+        d_new = np.array([[0.6, 0.7, 0.4]]) / np.linalg.norm([0.6, 0.7, 0.4])
+        new_light = solvers.Lighting(None, jnp.asarray(d_new), jnp.asarray([[2.0, 2.0, 2.0]]))
+        ref = np.asarray(jaxsh.render_reference(n_, v_, truth.kd, truth.ks, truth.mu, truth.sigma, directional=(d_new, np.full((1, 3), 2.0))))
+
+        def relit(brdf, fit_scale):
+            p = np.asarray(solvers.predict(brdf, new_light, n_, v_))
+            if fit_scale:
+                p = p * (np.sum(p * ref, 0) / np.sum(p * p, 0))
+            return float(np.sqrt(np.mean((p - ref) ** 2) / np.mean(ref**2)))
+
+        e_known, e_fac = relit(known.brdf, False), relit(fac.brdf, True)
+        print(f"{name}: render {t_render:.1f} s | known-lighting fit {t_known:.2f} s | inverse lighting {t_il:.2f} s "
+              f"| factorization {t_fac:.2f} s")
+        print(f"  {'':8} {'truth':>22} {'known lighting':>22} {'unknown lighting':>22}")
+        fmt = lambda a: " ".join(f"{x:.3f}" for x in np.atleast_1d(np.asarray(a)))  # noqa: E731
+        for pname in ("kd", "ks", "mu", "sigma"):
+            print(f"  {pname:8} {fmt(getattr(truth, pname)):>22} {fmt(getattr(known.brdf, pname)):>22} "
+                  f"{fmt(getattr(fac.brdf, pname)):>22}")
+        print(f"  {'status':8} {'':>22} {solvers.status_name(known.status):>22} {solvers.status_name(fac.status):>22}")
+        print(f"  {'rel RMS':8} {'':>22} {float(known.rel_rms):>22.4f} {float(fac.rel_rms):>22.4f}")
+        print(f"  inverse lighting (known BRDF, l* = {args.lmax}): l<=2 correlation with the filtered truth {corr_il:.4f}, "
+              f"supported l* {int(np.min(np.asarray(il.supported_lmax)))}")
+        print(f"  factorization: l<=2 lighting correlation {corr_fac:.4f}; source found at "
+              f"{np.round(np.asarray(fac.source.direction), 3).tolist()} (true {np.round(cap.directional[0][0], 3).tolist()})")
+        print(f"  held-out view, new light: known-lighting BRDF {e_known:.2%}, factorized BRDF {e_fac:.2%} (scale fitted)\n")
+        ok &= solvers.status_name(known.status) == "converged" and solvers.status_name(fac.status) == "converged"
+        report["materials"].append({
+            "name": name,
+            "truth": _brdf_json(truth),
+            "known_lighting": {"brdf": _brdf_json(known.brdf), "std_errors": {k_: _json(getattr(known.std_errors, k_)) for k_ in ("kd", "ks", "mu", "sigma")},
+                               "status": solvers.status_name(known.status), "rms": float(known.rms), "rel_rms": float(known.rel_rms),
+                               "iterations": int(known.iterations), "time_s": t_known, "relight_rel_rms": e_known},
+            "inverse_lighting": {"lighting": {"lmax": args.lmax, "frame": "world, +z up", "coeffs": _json(il.coeffs)},
+                                 "l2_correlation": float(corr_il), "supported_lmax": _json(il.supported_lmax),
+                                 "status": solvers.status_name(il.status), "rel_rms": float(il.rel_rms), "time_s": t_il},
+            "unknown_lighting": {"brdf": _brdf_json(fac.brdf), "std_errors": {k_: _json(getattr(fac.std_errors, k_)) for k_ in ("kd", "ks", "mu", "sigma")},
+                                 "lighting": {"lmax": args.lmax, "frame": "world, +z up", "coeffs": _json(fac.lighting.slow_sh),
+                                              "directional": [{"direction": _json(fac.lighting.fast_directions[0]), "radiance": _json(fac.lighting.fast_energy[0])}]},
+                                 "sigma_eq26": float(fac.source.sigma_eq26), "l2_correlation": float(corr_fac),
+                                 "status": solvers.status_name(fac.status), "rms": float(fac.rms), "rel_rms": float(fac.rel_rms),
+                                 "iterations": int(fac.iterations), "time_s": t_fac, "relight_rel_rms_scale_fitted": e_fac},
+        })
+        images[f"{name}_input_view0"] = cap.images[0]
+        images[f"{name}_factorized_view0"] = obs.to_images(np.asarray(solvers.predict(fac.brdf, fac.lighting, obs.normals, obs.views)))[0]
+        h = 4 * (args.lmax + 1)
+        images[f"{name}_lighting_recovered"] = np.asarray(jaxsh.synthesize_latlong(fac.filtered_sh, h, 2 * h))
+        images[f"{name}_lighting_true_filtered"] = np.asarray(jaxsh.synthesize_latlong(tl, h, 2 * h))
     report["total_time_s"] = time.perf_counter() - t0
-    print(f"\ntotal {report['total_time_s']:.1f} s")
+    print(f"total {report['total_time_s']:.1f} s")
     if args.out:
         from jaxsh.io import write_image
 
         os.makedirs(args.out, exist_ok=True)
         for name, img in images.items():
             write_image(os.path.join(args.out, name + ".exr"), img)
-            write_image(os.path.join(args.out, name + ".png"), img, exposure=-1.0)
+            write_image(os.path.join(args.out, name + ".png"), np.maximum(img, 0))
         print(f"images written to {args.out}/")
     if args.json:
+        d = os.path.dirname(args.json)
+        if d:
+            os.makedirs(d, exist_ok=True)
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
         print(f"report written to {args.json}")
-    ok = all(p["round_trip_max_abs"] < 1e-9 for p in report["projection"]) and rot_err < 1e-3 and err_e < 0.05
     return 0 if ok else 1
+
+
+def _fit(args) -> int:
+    import jax
+
+    from jaxsh.io import ManifestError
+
+    from ._fit_manifest import fit_manifest
+
+    try:
+        with jax.enable_x64(True):
+            result = fit_manifest(args.manifest, args.out)
+    except (ManifestError, FileNotFoundError, ValueError) as e:
+        print(f"jaxsh fit: {e}", file=sys.stderr)
+        return 2
+    b = result["brdf"]
+    print(f"status {result['status']}, relative RMS {result['rel_rms']:.4f}")
+    print(f"kd {b['kd']}  ks {b['ks']}  mu {b['mu']}  sigma {b['sigma']}")
+    print(f"results in {args.out}/")
+    return 0 if result["status"] in ("converged", "ill_conditioned") else 1
 
 
 def _render(args) -> int:
@@ -121,27 +169,22 @@ def _render(args) -> int:
     return 0
 
 
-def _not_yet(name):
-    def run(args) -> int:
-        print(f"jaxsh {name}: not implemented yet in this version (see the open issues).", file=sys.stderr)
-        return 2
-
-    return run
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jaxsh", description="Signal-processing inverse rendering in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="run the end-to-end synthetic pipeline (no input files)")
+    p = sub.add_parser("demo", help="run the end-to-end synthetic inverse-rendering pipeline (no input files)")
     p.add_argument("--out", help="directory for images (EXR + PNG)")
     p.add_argument("--json", help="write a JSON report here")
-    p.add_argument("--height", type=int, default=256, help="map height (width = 2 x height)")
-    p.add_argument("--lmax", type=int, nargs="+", default=[2, 8, 32])
+    p.add_argument("--size", type=int, default=64, help="image size in pixels (default 64)")
+    p.add_argument("--views", type=int, default=3, help="number of views (default 3)")
+    p.add_argument("--noise", type=float, default=0.01, help="noise, as a fraction of the image RMS (default 0.01)")
+    p.add_argument("--lmax", type=int, default=12, help="lighting cutoff l* (default 12)")
+    p.add_argument("--materials", type=int, default=3, help="how many of the fig. 11 materials (1-3)")
     p.set_defaults(func=_demo)
-    q = sub.add_parser("fit", help="recover lighting and BRDF from a capture manifest (not implemented yet)")
+    q = sub.add_parser("fit", help="recover what a capture manifest leaves unknown (lighting and/or BRDF)")
     q.add_argument("manifest")
-    q.add_argument("--out")
-    q.set_defaults(func=_not_yet("fit"))
+    q.add_argument("--out", default="fit_out", help="output directory (result.json, lighting.exr/.png, view_###)")
+    q.set_defaults(func=_fit)
     q = sub.add_parser("render", help="render every view of a manifest with given lighting and BRDF")
     q.add_argument("manifest")
     q.add_argument("--out", default="render_out", help="output directory (view_000.exr/.png, ...)")
