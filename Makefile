@@ -34,6 +34,8 @@ bench: $(BIN)/python
 	$(BIN)/python benchmarks/bench_convolution.py
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_mitsuba.py
+	$(BIN)/python benchmarks/bench_sharing.py
+	$(BIN)/python benchmarks/bench_inverse.py
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .hypothesis

@@ -22,7 +22,12 @@ from ._synthetic import (
     view_cameras as view_cameras,
 )
 from ._sharing import SharingFit as SharingFit, fit_sharing as fit_sharing
-from ._lighting import LightingResult as LightingResult, inverse_lighting as inverse_lighting
+from ._lighting import (
+    DualLightingResult as DualLightingResult,
+    LightingResult as LightingResult,
+    inverse_lighting as inverse_lighting,
+    inverse_lighting_dual as inverse_lighting_dual,
+)
 from ._factorize import (
     FactorizationResult as FactorizationResult,
     SourceEstimate as SourceEstimate,

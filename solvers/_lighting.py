@@ -265,3 +265,165 @@ def _finish(g: _Gram, kd, ks, lmax, ridge, rcond) -> LightingResult:
     status = Status.where(jnp.all(det), Status.converged, Status.ill_conditioned)
     status = Status.where(finite, status, Status.nonfinite)
     return LightingResult(x.T, se.T, det.T, sv, supported, band_snr, status, rms, rel)
+
+
+# --------------------------------------------------------------------------- the dual method (fig. 8)
+
+
+class DualLightingResult(eqx.Module):
+    """Result of `inverse_lighting_dual`.
+
+    - `image`: `(H, W, C)` lat-long lighting in angular space (the filtered
+      lighting seen in the mirror directions; texels no mirror direction
+      reaches hold the $l \\le 2$ field of `coeffs9`).
+    - `coeffs9`: `(9, C)` the frequency-space coefficients $L_{lm}$, $l \\le 2$,
+      solving the consistency condition $L^1 = L^2$.
+    - `covered`: `(H, W)` bool, texels reached by a mirror direction.
+    - `consistency`: `(C,)` $|L^1 - L^2| / |L^1|$ of the returned image
+      (0 up to round-off without `nonneg`; small with it).
+    - `status`, `rms`, `rel_rms`, `iterations` (of the non-negative refinement).
+    """
+
+    image: Float[Array, "H W C"]
+    coeffs9: Float[Array, "9 C"]
+    covered: Bool[Array, "H W"]
+    consistency: Float[Array, " C"]
+    status: Status
+    rms: Float[Array, ""]
+    rel_rms: Float[Array, ""]
+    iterations: Int[Array, ""]
+
+
+@blas_single_thread
+def inverse_lighting_dual(
+    obs: Observations,
+    brdf: TorranceSparrow,
+    height: int = 64,
+    *,
+    nonneg: bool = True,
+    maxiter: int = 300,
+) -> DualLightingResult:
+    """The dual angular / frequency-space inverse lighting of R&H sec. 6.2 (fig. 8).
+
+    Phase 1 turns 9 coefficients $L^1$ into a high-resolution lighting image:
+    each lat-long texel $t$ takes the least-squares value of
+    $(B - K_d E(L^1))/(K_s F)$ over the pixels whose mirror direction falls in
+    it (eq. 22 with $B_{s,fast} = 0$). Phase 2 projects that image to 9
+    coefficients $L^2$. Both are affine in $L^1$, so the consistency
+    condition $L^1 = L^2$ is 9 linear equations per channel, solved
+    directly. With `nonneg=True` the image is then refined by jaxopt's
+    L-BFGS-B under $L \\ge 0$, minimizing the image residual of the same
+    model with the diffuse term driven by the image's own $l \\le 2$
+    projection (consistency by construction).
+
+    Convex objects only (the paper: with shadows $B_d$ no longer depends on
+    9 coefficients); `obs.transfer` must be None. `brdf`: homogeneous, with
+    $K_s > 0$. Returns `DualLightingResult`.
+    """
+    if not isinstance(obs, Observations):
+        raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
+    _check_brdf(brdf)
+    if obs.transfer is not None:
+        raise ValueError("inverse_lighting_dual: concave objects (obs.transfer given) are not supported (R&H sec. 6.4)")
+    h = int(height)
+    if h < 4:
+        raise ValueError(f"`height` must be >= 4, got {h}")
+    c = obs.n_channels
+    dt = obs.values.dtype
+    kd = jnp.broadcast_to(jnp.asarray(brdf.kd, dt), (c,))
+    ks = jnp.broadcast_to(jnp.asarray(brdf.ks, dt), (c,))
+    if not bool(jnp.all(ks > 0)):
+        raise ValueError("inverse_lighting_dual needs `brdf.ks` > 0 in every channel (the mirror term carries the image)")
+    mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
+    x, l9, cov, iters = _dual(obs, kd, ks, mu, h, nonneg, int(maxiter))
+    res = _dual_finish(obs, kd, ks, mu, x, l9, cov, iters, h)
+    if nonneg and int(iters) >= int(maxiter) and status_ok(res.status):
+        res = eqx.tree_at(lambda r: r.status, res, Status.max_steps_reached)
+    return res
+
+
+def status_ok(status) -> bool:
+    return bool(status == Status.converged)
+
+
+def _dual_pieces(obs, kd, ks, mu, h):
+    w_ = 2 * h
+    dt = obs.values.dtype
+    n, v, b, wts = obs.normals, obs.views, obs.values, obs.weights
+    cos_o = jnp.sum(n * v, -1)
+    vis = cos_o > 0
+    cos_o = jnp.where(vis, cos_o, 1.0)
+    f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
+    r = jaxsh.reflect(v, n)
+    theta = jnp.arccos(jnp.clip(r[:, 2], -1.0, 1.0))
+    phi = jnp.mod(jnp.arctan2(r[:, 1], r[:, 0]), 2 * jnp.pi)
+    row = jnp.clip(jnp.floor(theta / jnp.pi * h).astype(jnp.int32), 0, h - 1)
+    col = jnp.clip(jnp.floor(phi / (2 * jnp.pi) * w_).astype(jnp.int32), 0, w_ - 1)
+    tex = row * w_ + col
+    a9 = jaxsh.lambertian_spectrum(2, dt)[jaxsh.sh_degrees(2)]
+    d = jaxsh.real_sh(n, 2) * a9[None, :]  # (N, 9)
+    wv = jnp.where(vis, wts, 0.0)
+    dirs = jaxsh.latlong_directions(h, w_, dtype=dt).reshape(-1, 3)
+    omega = jaxsh.latlong_weights(h, w_, dtype=dt).reshape(-1)
+    y9 = jaxsh.real_sh(dirs, 2)  # (T, 9)
+    return f, tex, d, wv, y9, omega, b
+
+
+@eqx.filter_jit
+def _dual(obs, kd, ks, mu, h, nonneg, maxiter):
+    t_count = h * 2 * h
+    f, tex, d, wv, y9, omega, b = _dual_pieces(obs, kd, ks, mu, h)
+    c = b.shape[1]
+    g = ks[None, :] * f[:, None]  # (N, C) the mirror-term gain K_s F
+
+    def seg(x):
+        return jax.ops.segment_sum(x, tex, num_segments=t_count)
+
+    den = seg(wv[:, None] * g * g)  # (T, C)
+    covered = den[:, 0] > 0
+    den_s = jnp.where(den > 0, den, 1.0)
+    a = jnp.where(den > 0, seg(wv[:, None] * g * b) / den_s, 0.0)  # (T, C)
+    # L_map = a - M L1 on covered texels, M[t, c, :] = sum w g kd d / den; uncovered: L_map = y9 L1
+    m = seg((wv[:, None] * g * kd[None, :])[:, :, None] * d[:, None, :]) / den_s[:, :, None]  # (T, C, 9)
+    m = jnp.where(covered[:, None, None], m, -y9[:, None, :])
+    p = (omega[:, None] * y9).T  # (9, T) projection to l <= 2
+    pa = p @ a  # (9, C)
+    pm = jnp.einsum("it,tcj->cij", p, m)  # (C, 9, 9)
+    eye = jnp.eye(9, dtype=b.dtype)
+    l1 = jnp.linalg.solve(eye[None] + pm, pa.T[:, :, None])[:, :, 0].T  # (9, C)
+    img = a - jnp.einsum("tcj,jc->tc", m, l1)  # (T, C)
+    iters = jnp.asarray(0)
+    if nonneg:
+        from ._jaxopt import minimize_nonnegative
+
+        sw = jnp.sqrt(wv)
+
+        def loss(x):
+            l9 = p @ x  # (9, C): the image's own l <= 2 part drives the diffuse term
+            pred = kd[None, :] * (d @ l9) + g * x[tex]
+            r = sw[:, None] * (pred - b)
+            # texels no pixel sees are tied (weakly) to the consistent phase-1 field
+            tie = jnp.where(covered[:, None], 0.0, x - img)
+            return jnp.sum(r * r) / jnp.sum(wv) + 1e-6 * jnp.sum(tie * tie) / t_count
+
+        x, iters, _ = minimize_nonnegative(loss, jnp.maximum(img, 0.0), maxiter=maxiter)
+        img = x
+        l1 = p @ img
+    return img, l1, covered, iters
+
+
+def _dual_finish(obs, kd, ks, mu, img, l1, covered, iters, h):
+    f, tex, d, wv, y9, omega, b = _dual_pieces(obs, kd, ks, mu, h)
+    g = ks[None, :] * f[:, None]
+    pred = kd[None, :] * (d @ l1) + g * img[tex]
+    rss = jnp.sum(wv[:, None] * (pred - b) ** 2)
+    nobs = jnp.sum((wv > 0).astype(b.dtype)) * b.shape[1]
+    rms = jnp.sqrt(rss / nobs)
+    rel = rms / jnp.sqrt(jnp.sum(wv[:, None] * b * b) / nobs)
+    p = (omega[:, None] * y9).T
+    l2 = p @ img
+    consistency = jnp.linalg.norm(l2 - l1, axis=0) / jnp.linalg.norm(l1, axis=0)
+    finite = jnp.all(jnp.isfinite(img)) & jnp.isfinite(rms)
+    status = Status.where(finite, Status.converged, Status.nonfinite)
+    return DualLightingResult(img.reshape(h, 2 * h, -1), l1, covered.reshape(h, 2 * h), consistency, status, rms, rel,
+                              jnp.asarray(iters))

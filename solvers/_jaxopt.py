@@ -1,0 +1,26 @@
+"""The one module that uses jaxopt (unmaintained upstream): box-constrained minimization.
+
+optimistix has no bound-constrained solver; jaxopt's L-BFGS-B does. Its
+DeprecationWarning is filtered here (and in the test configuration).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    import jaxopt
+
+
+def minimize_nonnegative(fun, x0, maxiter: int = 500, tol: float = 1e-8):
+    """Minimize a smooth `fun(x)` subject to `x >= 0` (jaxopt.LBFGSB). Returns `(x, num_iter, error)`."""
+    import jax.numpy as jnp
+
+    solver = jaxopt.LBFGSB(fun=fun, maxiter=maxiter, tol=tol)
+    lower = jnp.zeros_like(x0)
+    upper = jnp.full_like(x0, jnp.inf)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        res = solver.run(x0, bounds=(lower, upper))
+    return res.params, res.state.iter_num, res.state.error
