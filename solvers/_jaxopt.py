@@ -23,4 +23,5 @@ def minimize_nonnegative(fun, x0, maxiter: int = 500, tol: float = 1e-8):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         res = solver.run(x0, bounds=(lower, upper))
-    return res.params, res.state.iter_num, res.state.error
+    # the projection can leave -1e-19 round-off below the bound
+    return jnp.maximum(res.params, 0.0), res.state.iter_num, res.state.error
