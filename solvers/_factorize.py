@@ -44,7 +44,7 @@ from ._threads import blas_single_thread
 from ._data import Lighting, Observations, Status, TorranceSparrow
 from ._lighting import _finish, _gram, _Gram
 
-_GOLDEN = 0.5 * (np.sqrt(5.0) - 1.0)
+_GOLDEN = float(0.5 * (np.sqrt(5.0) - 1.0))  # a Python float: weakly typed, keeps float32
 
 
 class SourceEstimate(eqx.Module):
@@ -343,7 +343,8 @@ def factorize(
     - `max_steps`, `rtol`, `atol`: the refinement simplex.
 
     **Returns:** `FactorizationResult` ($K_d + K_s = 1$ per channel; the
-    lighting carries the scale).
+    lighting carries the scale). Float32 observations are solved in float64
+    (which must be enabled) and the result is returned in float32.
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
@@ -354,6 +355,20 @@ def factorize(
         raise ValueError("`refine=True` needs `find_sigma=True` (the refinement models the found source)")
     if obs.texel is not None and obs.n_texels > 0:
         pass  # texels are ignored: factorization assumes a homogeneous BRDF (R&H sec. 6.4)
+    if obs.values.dtype != jnp.float64:
+        # The nested searches work on normal equations whose condition numbers reach 1e6-1e8: float32
+        # cannot resolve them (measured: non-finite results). Solve in float64, return float32.
+        if not jax.config.jax_enable_x64:
+            raise ValueError(
+                "factorize needs float64 arithmetic (its normal equations are too ill-conditioned for float32); "
+                "enable it with jax.config.update('jax_enable_x64', True) or `with jax.enable_x64(True):`"
+            )
+        up = jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if a.dtype == obs.values.dtype else a, obs)
+        res = factorize.__wrapped__(up, lmax, fresnel=fresnel, find_sigma=find_sigma, region=region, refine=refine,
+                                    search_pixels=search_pixels, key=key, max_steps=max_steps, rtol=rtol, atol=atol,
+                                    chunk=chunk)
+        down = obs.values.dtype
+        return jax.tree_util.tree_map(lambda a: a.astype(down) if a.dtype == jnp.float64 else a, res)
     dt = obs.values.dtype
     f64 = dt == jnp.float64
     rcond = 1e-12 if f64 else 1e-6

@@ -433,3 +433,15 @@ def test_fit_brdf_sh_solves_the_linear_system_of_eqs_9_10(rng):
         np.testing.assert_allclose(pred, img[held], atol=1e-9 * np.abs(img).max())
     with pytest.raises(ValueError, match="lighting_sh"):
         solvers.fit_brdf_sh(solvers.observations(gbs, imgs), L[:4], lmax)
+
+
+def test_inverse_lighting_and_factorize_accept_float32(obs_noisy, factorization):
+    obs32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, obs_noisy)
+    t32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), TRUTH)
+    il32 = solvers.inverse_lighting(obs32, t32, 8)
+    il64 = solvers.inverse_lighting(obs_noisy, TRUTH, 8)
+    assert il32.coeffs.dtype == jnp.float32
+    np.testing.assert_allclose(il32.coeffs, il64.coeffs, atol=1e-4 * float(jnp.abs(il64.coeffs).max()))
+    f32 = solvers.factorize(obs32, 12)  # solved in float64 internally (documented), returned in float32
+    assert f32.brdf.ks.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(f32.brdf.ks), np.asarray(factorization.brdf.ks), atol=1e-3)
