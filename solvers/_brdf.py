@@ -41,7 +41,11 @@ class BRDFResult(eqx.Module):
 
     - `brdf`: the estimate (`TorranceSparrow`).
     - `std_errors`: a `TorranceSparrow` of one-sigma standard errors (`inf`
-      where the data do not determine a parameter).
+      where the data do not determine a parameter). They are statistical:
+      they measure how well the pixels determine a parameter under the
+      practical model (noise, conditioning), not the model's own error
+      against real reflection, which can be larger (see the closing notes:
+      with an area source only, sigma was off by ~9 standard errors).
     - `covariance`: `(p, p)` covariance of `(kd..., ks..., mu, sigma)`
       (homogeneous fits; the `(mu, sigma)` block for textured fits).
     - `status`: `Status`; `iterations`: simplex + LM steps.

@@ -353,8 +353,11 @@ def factorize(
         raise ValueError(f"`lmax` must be >= 3 for factorization, got {lmax}")
     if refine and not find_sigma:
         raise ValueError("`refine=True` needs `find_sigma=True` (the refinement models the found source)")
-    if obs.texel is not None and obs.n_texels > 0:
-        pass  # texels are ignored: factorization assumes a homogeneous BRDF (R&H sec. 6.4)
+    if obs.texel is not None:
+        raise ValueError(
+            "factorize assumes a homogeneous BRDF (R&H sec. 6.4: texture and lighting cannot be factored); "
+            "build the observations without `texel`"
+        )
     if obs.values.dtype != jnp.float64:
         # The nested searches work on normal equations whose condition numbers reach 1e6-1e8: float32
         # cannot resolve them (measured: non-finite results). Solve in float64, return float32.
@@ -380,16 +383,26 @@ def factorize(
         idx = np.sort(np.asarray(jax.random.choice(key, obs.n_samples, (int(search_pixels),), replace=False)))
         sub = obs.subset(idx)
     # Stage 1: nested 1-D searches over mu (batched grid, then two zooms) and ks (golden, per channel).
+    curv_rss = None
     if fresnel:
         t = np.linspace(np.log(0.05), np.log(2.5), 9)
-        step = t[1] - t[0]
-        best = None
-        for _ in range(3):
+        for rnd in range(3):
             vals = np.asarray(_mu_candidates(sub, jnp.asarray(t, dt), lmax, chunk, rcond))
             k = int(np.nanargmin(vals))
             best = t[k]
-            t = np.linspace(best - step, best + step, 7)
-            step = t[1] - t[0]
+            if rnd < 2:
+                step = t[1] - t[0]
+                t = np.linspace(best - step, best + step, 7)
+        # continuous minimum: the parabola through the best point of the last grid and its neighbours
+        if 0 < k < len(t) - 1 and np.all(np.isfinite(vals[k - 1 : k + 2])):
+            h = t[1] - t[0]
+            y0, y1, y2 = vals[k - 1 : k + 2]
+            c2 = (y0 - 2 * y1 + y2) / h**2
+            if c2 > 0:
+                best = t[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h))
+                # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
+                bb_sub = float(jnp.sum(sub.weights[:, None] * sub.values**2))
+                curv_rss = c2 * bb_sub * obs.n_samples / sub.n_samples
         mu = jnp.asarray(1.0 + np.exp(best), dt)
         its1 = 9 + 7 + 7
     else:
@@ -410,7 +423,15 @@ def factorize(
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond)
     ks, sigma, lighting, se_ks, se_sigma, ok, its2, rms, rel = out
     brdf = TorranceSparrow(1.0 - ks, ks, mu, sigma)
-    std = TorranceSparrow(se_ks, se_ks, None if mu is None else jnp.asarray(jnp.inf, dt), se_sigma)
+    se_mu = None
+    if mu is not None:
+        se_mu = jnp.asarray(jnp.inf, dt)
+        if curv_rss is not None:
+            # profile curvature: var(t) = s^2 / (RSS''/2), s^2 = RSS / (n - p); mu = 1 + e^t
+            nobs = obs.n_samples * obs.n_channels
+            s2 = float(rms) ** 2 * nobs / max(nobs - (jaxsh.num_coeffs(lmax) + 1) * obs.n_channels - 2 * obs.n_channels - 2, 1)
+            se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
+    std = TorranceSparrow(se_ks, se_ks, se_mu, se_sigma)
     status = Status.where(ok, Status.converged, Status.max_steps_reached)
     finite = jnp.all(jnp.isfinite(ks)) & jnp.isfinite(sigma) & jnp.isfinite(rms)
     status = Status.where(finite, status, Status.nonfinite)

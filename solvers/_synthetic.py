@@ -98,6 +98,7 @@ def sphere_capture(
     sources=None,
     lighting_lmax: int = 40,
     azimuths=None,
+    elevation: float = 0.45,
     disk_nodes=(48, 96),
     dtype=np.float64,
 ) -> SyntheticCapture:
@@ -108,7 +109,7 @@ def sphere_capture(
     `(disks, directional)` as `default_sources()` returns.
     """
     disks, directional = default_sources(dtype) if sources is None else sources
-    cams = view_cameras(n_views, size, azimuths=azimuths, dtype=dtype)
+    cams = view_cameras(n_views, size, elevation=elevation, azimuths=azimuths, dtype=dtype)
     rng = np.random.default_rng(seed)
     gbs, imgs, clean = [], [], []
     for cam in cams:

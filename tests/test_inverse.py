@@ -213,7 +213,9 @@ def test_factorize_recovers_brdf_under_unknown_lighting(factorization):
     np.testing.assert_allclose(np.asarray(res.brdf.kd), np.asarray(TRUTH.kd) / s, atol=0.03)
     np.testing.assert_allclose(np.asarray(res.brdf.kd + res.brdf.ks), 1.0, atol=1e-12)
     assert _rel(res.brdf.sigma, TRUTH.sigma) < 0.15
+    assert _rel(res.brdf.mu, TRUTH.mu) < 0.10
     assert np.all(np.isfinite(np.asarray(res.std_errors.ks))) and np.isfinite(float(res.std_errors.sigma))
+    assert np.isfinite(float(res.std_errors.mu))
 
 
 def test_factorize_lighting_correlates_with_truth(capture, factorization):
@@ -253,6 +255,11 @@ def test_factorize_options(obs_noisy):
         solvers.factorize(obs_noisy, 2)
     with pytest.raises(ValueError, match="find_sigma"):
         solvers.factorize(obs_noisy, 8, find_sigma=False, refine=True)
+    import equinox as eqx
+
+    textured = eqx.tree_at(lambda o: o.texel, obs_noisy, jnp.zeros(obs_noisy.n_samples, jnp.int32), is_leaf=lambda x: x is None)
+    with pytest.raises(ValueError, match="homogeneous"):
+        solvers.factorize(textured, 8)
 
 
 # --------------------------------------------------------------------------- textures and shadows (sec. 6.4)
