@@ -21,7 +21,9 @@ processed in chunks of `chunk` rows with `jax.lax.map`, so at most a
 `(chunk, K)` distance matrix exists at a time. Distances are accumulated
 coordinate by coordinate as 2-D broadcasts $\\sum_k (m_k q_k - m_k q_{i,k})^2$
 (not the $|a|^2 + |b|^2 - 2a\\cdot b$ matrix-product trick, which loses
-about $10^{-6}$ relative accuracy next to the centres), then one matrix
+about $10^{-6}$ relative accuracy next to the centres), with the scaled
+centres stored transposed, `(d, K)`, so that the inner loop over the centres
+reads contiguous memory and vectorises; then one matrix
 product with the weights handles all channels. The square root is guarded
 (double `where`), so gradients with respect to the points are finite — and
 the kernel's contribution zero — exactly at a centre, where $\\|\\cdot\\|$
@@ -86,10 +88,20 @@ def scaled_distances(
 
 
 def _sq_dist(a_s, b_s):
-    """Squared distances of already-scaled points, unrolled over the coordinates."""
+    """Squared distances of already-scaled points `(Na, d)`, `(Nb, d)`, unrolled over the coordinates."""
+    return _sq_dist_t(a_s, b_s.T)
+
+
+def _sq_dist_t(a_s, b_s_t):
+    """`_sq_dist` with the second set passed *transposed*, `(d, Nb)`.
+
+    Each coordinate row `b_s_t[k]` is then contiguous, so the inner loop over
+    `Nb` of the fused elementwise kernel vectorises (a strided column of a
+    `(Nb, d)` array does not: evaluation is ≈1.3–1.6× slower that way).
+    """
     r2 = None
     for k in range(a_s.shape[1]):
-        diff = a_s[:, k][:, None] - b_s[:, k][None, :]
+        diff = a_s[:, k][:, None] - b_s_t[k][None, :]
         r2 = diff * diff if r2 is None else r2 + diff * diff
     return r2
 
@@ -124,10 +136,10 @@ def _poly_eval(points, poly):
 def _evaluate(centers, weights, poly, scale, points, chunk: int):
     """Chunked evaluation, points (M, d) -> (M, C)."""
     m, d = points.shape
-    cs = centers * scale[None, :]
+    cs_t = (centers * scale[None, :]).T  # (d, K), contiguous rows (see `_sq_dist`)
 
     def block(p):
-        r = _safe_sqrt(_sq_dist(p * scale[None, :], cs))
+        r = _safe_sqrt(_sq_dist_t(p * scale[None, :], cs_t))
         return r @ weights + _poly_eval(p, poly)
 
     if m <= chunk:
@@ -162,7 +174,7 @@ class RBFModel(eqx.Module):
     returns `(M,)`/`(M, C)` (or `()`/`(C,)`). The call is jitted; the
     dtype is the widest of the model's and the points' (evaluation in
     float32 is accurate to ≈1e-5 relative for 1,000-5,000 centres and runs
-    ≈2.5× faster than float64 on CPU; the fitted coefficients should
+    ≈3× faster than float64 on CPU; the fitted coefficients should
     come from a float64 fit, see `solvers.fit_sharing`).
     """
 
