@@ -83,6 +83,8 @@ def _demo_x64(args) -> int:
         for pname in ("kd", "ks", "mu", "sigma"):
             print(f"  {pname:8} {fmt(getattr(truth, pname)):>22} {fmt(getattr(known.brdf, pname)):>22} "
                   f"{fmt(getattr(fac.brdf, pname)):>22}")
+        tn = np.asarray(truth.ks) / np.asarray(truth.kd + truth.ks)
+        print(f"  {'ks/(kd+ks)':8} {fmt(tn):>22} {'':>22} {fmt(fac.brdf.ks):>22}   (unknown lighting: Kd + Ks = 1 per channel)")
         print(f"  {'status':8} {'':>22} {solvers.status_name(known.status):>22} {solvers.status_name(fac.status):>22}")
         print(f"  {'rel RMS':8} {'':>22} {float(known.rel_rms):>22.4f} {float(fac.rel_rms):>22.4f}")
         print(f"  inverse lighting (known BRDF, l* = {args.lmax}): l<=2 correlation with the filtered truth {corr_il:.4f}, "
