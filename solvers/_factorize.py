@@ -364,7 +364,7 @@ def factorize(
         if not jax.config.jax_enable_x64:
             raise ValueError(
                 "factorize needs float64 arithmetic (its normal equations are too ill-conditioned for float32); "
-                "enable it with jax.config.update('jax_enable_x64', True) or `with jax.enable_x64(True):`"
+                "enable the jax_enable_x64 flag (in your script or notebook) or call it inside `with jax.enable_x64(True):`"
             )
         up = jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if a.dtype == obs.values.dtype else a, obs)
         res = factorize.__wrapped__(up, lmax, fresnel=fresnel, find_sigma=find_sigma, region=region, refine=refine,
