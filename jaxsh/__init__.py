@@ -67,6 +67,7 @@ from ._reflectance import (
     cook_torrance as cook_torrance,
     fresnel_dielectric as fresnel_dielectric,
     fresnel_normalized as fresnel_normalized,
+    half_angle as half_angle,
     half_vector as half_vector,
     lafortune as lafortune,
     lambertian as lambertian,

@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._checks import as_float_array, check_dirs
 from ._indexing import sh_degrees
-from ._reflectance import fresnel_normalized, reflect
+from ._reflectance import fresnel_normalized, half_angle, reflect
 from ._sh import _real_sh_flat, _unit_vectors
 from ._spectra import lambertian_spectrum, microfacet_spectrum
 
@@ -217,12 +217,7 @@ def _practical_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, c: int, chu
         lit = cos_i > 0
         vis = jnp.ones_like(cos_i) if fvis is None else fvis
         weight = jnp.where(lit, vis, 0.0)
-        h = v[:, None, :] + d[None, :, :]
-        hn = jnp.linalg.norm(h, axis=-1)
-        hn = jnp.where(hn > 0, hn, 1.0)
-        h_cos = jnp.sum(h * n[:, None, :], -1) / hn
-        h_sin = jnp.linalg.norm(jnp.cross(h, jnp.broadcast_to(n[:, None, :], h.shape)), axis=-1) / hn
-        theta_h = jnp.arctan2(h_sin, h_cos)
+        theta_h = half_angle(d[None, :, :], v[:, None, :], n[:, None, :])
         irr = irr + (jnp.where(lit, cos_i, 0.0) * vis) @ fen
         energy = fen
     else:

@@ -260,6 +260,26 @@ def _half_vector(wi, wo):
     return _safe_normalize(s, jnp.zeros_like(s))
 
 
+def half_angle(wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
+    """The half angle $\\theta_h = \\angle(\\omega_i + \\omega_o, n)$, as $\\operatorname{atan2}(|h \\times n|, h \\cdot n)$.
+
+    The atan2 form stays accurate near $\\theta_h = 0$ (where arccos of a
+    dot product loses half the digits), which is where the specular lobe of
+    R&H eq. 23 is evaluated. `wi`, `wo`, `n` are unit vectors broadcasting
+    against each other (no normalization here: this is the inner kernel
+    of the renderers); 0 where $\\omega_i = -\\omega_o$.
+
+    **Returns:** `(...)`.
+    """
+    h = wi + wo
+    n = jnp.broadcast_to(n, h.shape)
+    hn = jnp.linalg.norm(h, axis=-1)
+    hn = jnp.where(hn > 0, hn, 1.0)
+    h_cos = jnp.sum(h * n, -1) / hn
+    h_sin = jnp.linalg.norm(jnp.cross(h, n), axis=-1) / hn
+    return jnp.arctan2(h_sin, h_cos)
+
+
 def tangent_frame(
     n: Float[Array, "*batch 3"], t: Float[Array, "*batch 3"] | None = None
 ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3"]]:

@@ -36,7 +36,7 @@ from jaxtyping import Array, Float
 from ._checks import as_float_array, check_dirs, check_positive_int
 from ._grids import latlong_directions, latlong_weights
 from ._indexing import sh_degrees
-from ._reflectance import fresnel_normalized, reflect, tangent_frame, torrance_sparrow
+from ._reflectance import fresnel_normalized, half_angle, reflect, tangent_frame, torrance_sparrow
 from ._sh import _real_sh_flat, _unit_vectors
 from ._spectra import lambertian_spectrum, microfacet_spectrum
 
@@ -186,11 +186,7 @@ def _render_practical(n, v, kd, ks, mu, sigma, slow_sh, fdir, fen, transfer, fvi
         cos_i = flat_n @ d.T  # (N, J)
         lit = cos_i > 0
         vis = jnp.ones_like(cos_i) if fvis is None else jnp.asarray(fvis, dt).reshape(-1, d.shape[0])
-        h = flat_v[:, None, :] + d[None, :, :]
-        hn = jnp.linalg.norm(h, axis=-1)
-        h_cos = jnp.sum(h * flat_n[:, None, :], -1) / jnp.where(hn > 0, hn, 1.0)
-        h_sin = jnp.linalg.norm(jnp.cross(h, jnp.broadcast_to(flat_n[:, None, :], h.shape)), axis=-1) / jnp.where(hn > 0, hn, 1.0)
-        theta_h = jnp.arctan2(h_sin, h_cos)
+        theta_h = half_angle(d[None, :, :], flat_v[:, None, :], flat_n[:, None, :])
         tj = jnp.where(lit, jnp.exp(-((theta_h / sigma) ** 2)) / (jnp.pi * sigma**2), 0.0) * vis
         spec_fast = spec_fast + (f / (4 * cos_o_safe))[:, None] * (tj @ en)
         if exact_fast_diffuse:

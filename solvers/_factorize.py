@@ -469,12 +469,7 @@ def _fast_column(n, v, mu, sigma, d):
     f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
     cos_i = n @ d
     lit = (cos_i > 0) & vis
-    h = v + d[None, :]
-    hn = jnp.linalg.norm(h, axis=-1)
-    hn = jnp.where(hn > 0, hn, 1.0)
-    h_cos = jnp.sum(h * n, -1) / hn
-    h_sin = jnp.linalg.norm(jnp.cross(h, n), axis=-1) / hn
-    th = jnp.arctan2(h_sin, h_cos)
+    th = jaxsh.half_angle(d[None, :], v, n)
     t = jnp.exp(-((th / sigma) ** 2)) / (jnp.pi * sigma**2)
     return jnp.where(lit, cos_i, 0.0), jnp.where(lit, f * t / (4 * cos_o), 0.0)
 

@@ -337,12 +337,12 @@ def inverse_lighting_dual(
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
     x, l9, cov, iters = _dual(obs, kd, ks, mu, h, nonneg, int(maxiter))
     res = _dual_finish(obs, kd, ks, mu, x, l9, cov, iters, h)
-    if nonneg and int(iters) >= int(maxiter) and status_ok(res.status):
+    if nonneg and int(iters) >= int(maxiter) and _status_ok(res.status):
         res = eqx.tree_at(lambda r: r.status, res, Status.max_steps_reached)
     return res
 
 
-def status_ok(status) -> bool:
+def _status_ok(status) -> bool:
     return bool(status == Status.converged)
 
 

@@ -584,3 +584,24 @@ def test_errors():
         rf.uvw(np.ones(3), 0.0, np.ones(4))
     with pytest.raises(ValueError, match="`mu`"):
         rf.fresnel_normalized(0.5, 1j)
+
+
+def test_half_angle_matches_rusinkiewicz_theta_h(rng):
+    """`half_angle` (the renderers' kernel) equals the theta_h of `rusinkiewicz_angles`, and is exact near 0."""
+    import jaxsh
+
+    n = np.array([0.0, 0.0, 1.0])
+    wi = rng.normal(size=(200, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo = rng.normal(size=(200, 3))
+    wo[:, 2] = np.abs(wo[:, 2])
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    th = np.asarray(jaxsh.half_angle(wi, wo, np.broadcast_to(n, wi.shape)))
+    ref = np.asarray(jaxsh.rusinkiewicz_angles(wi, wo, np.broadcast_to(n, wi.shape))[0])
+    np.testing.assert_allclose(th, ref, atol=1e-12)
+    # tiny angle: wi, wo mirror-symmetric at 1e-9 from the normal
+    e = 1e-9
+    a = np.array([[np.sin(e), 0.0, np.cos(e)]])
+    b = np.array([[np.sin(e), 0.0, np.cos(e)]])
+    np.testing.assert_allclose(np.asarray(jaxsh.half_angle(a, b, n[None])), [e], rtol=1e-6)
