@@ -4,15 +4,14 @@ Results are equinox Modules with the estimate, a `Status`, iterations, RMS
 residual and standard errors; see DESIGN.md.
 """
 
+from ._results import Solution as Solution, SolveError as SolveError, Status as Status, status_name as status_name
 from ._data import (
     Lighting as Lighting,
     Observations as Observations,
-    Status as Status,
     TorranceSparrow as TorranceSparrow,
     observations as observations,
     practical_terms_for as practical_terms_for,
     predict as predict,
-    status_name as status_name,
 )
 from ._brdf import BRDFResult as BRDFResult, fit_brdf as fit_brdf
 from ._brdf_sh import BRDFSHResult as BRDFSHResult, fit_brdf_sh as fit_brdf_sh, predict_brdf_sh as predict_brdf_sh

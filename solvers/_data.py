@@ -23,22 +23,7 @@ from jaxtyping import Array, Float, Int
 
 import jaxsh
 
-
-class Status(eqx.Enumeration):
-    """Outcome of a solve (an `equinox.Enumeration`; `result.status == Status.converged`)."""
-
-    converged = "converged"
-    max_steps_reached = "the iteration limit was reached before the tolerance"
-    nonfinite = "non-finite values appeared in the residual or the solution"
-    ill_conditioned = "the linear system is numerically singular; see the singular values"
-
-
-def status_name(status) -> str:
-    """The item name of a `Status` value, e.g. `"converged"` (outside jit)."""
-    for name in ("converged", "max_steps_reached", "nonfinite", "ill_conditioned"):
-        if bool(status == getattr(Status, name)):
-            return name
-    raise ValueError(f"not a Status: {status!r}")
+from ._results import Status as Status, status_name as status_name  # re-exported for older imports
 
 
 class Lighting(eqx.Module):
