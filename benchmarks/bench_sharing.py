@@ -58,7 +58,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
 
 import solvers  # noqa: E402
-from solvers import _sharing_scenes as Z  # noqa: E402
+from solvers import synthetic as Z  # noqa: E402
 
 try:
     import interpax

@@ -94,20 +94,24 @@ from ._lighting import (
     split_disk_sources as split_disk_sources,
 )
 from ._render import Components as Components, render_practical as render_practical, render_reference as render_reference
-from ._scene import (
-    GBuffer as GBuffer,
+from ._camera import (
     OrthographicCamera as OrthographicCamera,
     PinholeCamera as PinholeCamera,
     camera_rays as camera_rays,
+    look_at as look_at,
+)
+from ._gbuffer import (
+    GBuffer as GBuffer,
+    sphere_gbuffer as sphere_gbuffer,
+    visibility_weighted_irradiance as visibility_weighted_irradiance,
+)
+from ._raycast import (
     directional_visibility as directional_visibility,
     embree_available as embree_available,
     hemisphere_quadrature as hemisphere_quadrature,
-    look_at as look_at,
     mesh_gbuffer as mesh_gbuffer,
     reflected_visibility as reflected_visibility,
-    sphere_gbuffer as sphere_gbuffer,
     visibility_sh as visibility_sh,
-    visibility_weighted_irradiance as visibility_weighted_irradiance,
 )
 from ._practical import PracticalTerms as PracticalTerms, practical_terms as practical_terms
 from ._rbf import (

@@ -318,7 +318,7 @@ def render_reference(
     ks = _bcast(ks.astype(dt), batch, c).reshape(-1, c)
     vis = None
     if mesh is not None:
-        from ._scene import directional_visibility
+        from ._raycast import directional_visibility
 
         pts = jnp.broadcast_to(jnp.asarray(points, dt), batch + (3,)).reshape(-1, 3)
         vis = jnp.asarray(directional_visibility(mesh, np.asarray(pts), np.asarray(n), np.asarray(sd)), dt)

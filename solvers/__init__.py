@@ -15,7 +15,7 @@ from ._data import (
 )
 from ._brdf import BRDFResult as BRDFResult, fit_brdf as fit_brdf
 from ._brdf_sh import BRDFSHResult as BRDFSHResult, fit_brdf_sh as fit_brdf_sh, predict_brdf_sh as predict_brdf_sh
-from ._synthetic import (
+from .synthetic import (
     SyntheticCapture as SyntheticCapture,
     default_sources as default_sources,
     sphere_capture as sphere_capture,

@@ -17,7 +17,7 @@ from scipy.interpolate import RBFInterpolator
 import jaxsh
 import solvers
 from solvers import _sharing as S
-from solvers import _sharing_scenes as Z
+from solvers import synthetic as Z
 
 
 def _data(rng, n, d, c=None):

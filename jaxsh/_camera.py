@@ -1,0 +1,260 @@
+"""Cameras: pinhole and orthographic models, `look_at`, and the rays of a view (jitted JAX).
+
+**Conventions** (DESIGN.md, "Capture manifest") follow OpenCV: +x right,
++y down, +z forward; `cam_to_world` is the 4×4 matrix mapping camera to
+world coordinates, $x_w = R\\,x_c + t$. Pixel $(i, j)$ = (row, column) has
+its centre at image coordinates $(u, v) = (j + \\tfrac12, i + \\tfrac12)$.
+
+- Pinhole: the ray of pixel $(i, j)$ leaves the camera centre $t$ along
+  $R\\,((u - c_x)/f_x, (v - c_y)/f_y, 1)$, normalized.
+- Orthographic: the ray of pixel $(i, j)$ leaves the camera-frame point
+  $((j + \\tfrac12 - W/2)\\,s, (i + \\tfrac12 - H/2)\\,s, 0)$ along the camera
+  +z axis, with $s$ = `scale` (world units per pixel).
+
+Everything here is jitted and differentiable in the cameras' array fields.
+This module also holds the small argument helpers shared by the scene
+modules (`_gbuffer.py`, jitted; `_raycast.py`, NumPy / trimesh).
+
+??? cite "References"
+    Hartley, R., Zisserman, A. (2004). *Multiple View Geometry in Computer
+    Vision*, 2nd ed., sec. 6.1 (the pinhole camera).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._checks import as_float_array, check_positive_int
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _widest(arrays):
+    """The common float dtype of `arrays` (strict promotion refuses f32+f64: take the widest)."""
+    try:
+        return jnp.result_type(*arrays)
+    except jax.dtypes.TypePromotionError:
+        return max((a.dtype for a in arrays), key=lambda d: jnp.dtype(d).itemsize)
+
+
+def _scalar(x, name: str):
+    """A scalar float parameter; Python numbers stay weakly typed."""
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return jnp.asarray(float(x))
+    a = as_float_array(x, name)
+    if a.shape != ():
+        raise ValueError(f"`{name}` must be a scalar (shape ()), got shape {tuple(a.shape)}")
+    return a
+
+
+def _require_positive(a, name: str) -> None:
+    """Raise a ValueError if a concrete scalar is not > 0 (traced values are checked later)."""
+    try:
+        v = np.asarray(a)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"`{name}` must be a finite positive number, got {v}")
+
+
+def _matrix4(m, name: str = "cam_to_world"):
+    m = as_float_array(m, name)
+    if m.shape != (4, 4):
+        raise ValueError(f"`{name}` must have shape (4, 4), got {tuple(m.shape)}")
+    return m
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+class PinholeCamera(eqx.Module):
+    """A pinhole camera in the OpenCV convention (see the module docstring).
+
+    **Arguments / fields:**
+
+    - `fx`, `fy`: focal lengths in pixels (traced scalars, > 0).
+    - `cx`, `cy`: principal point in pixels (traced scalars); the image
+      centre is `(width/2, height/2)`.
+    - `width`, `height`: image size in pixels (static ints).
+    - `cam_to_world`: `(4, 4)` camera-to-world matrix (traced); its upper
+      3×3 block should be a rotation (see `look_at`).
+
+    All arrays are converted to one float dtype (the widest given). A
+    non-positive focal length raises `ValueError` at construction (or, when
+    the camera is built from traced values, an error at run time of
+    `camera_rays`).
+    """
+
+    fx: Float[Array, ""]
+    fy: Float[Array, ""]
+    cx: Float[Array, ""]
+    cy: Float[Array, ""]
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+    cam_to_world: Float[Array, "4 4"]
+    model: ClassVar[str] = "pinhole"
+
+    def __init__(self, fx, fy, cx, cy, width, height, cam_to_world):
+        self.width = check_positive_int(width, "width")
+        self.height = check_positive_int(height, "height")
+        m = _matrix4(cam_to_world)
+        params = [_scalar(fx, "fx"), _scalar(fy, "fy"), _scalar(cx, "cx"), _scalar(cy, "cy")]
+        _require_positive(params[0], "fx")
+        _require_positive(params[1], "fy")
+        dt = _widest([m] + params)
+        self.fx, self.fy, self.cx, self.cy = (p.astype(dt) for p in params)
+        self.cam_to_world = m.astype(dt)
+
+
+class OrthographicCamera(eqx.Module):
+    """An orthographic camera in the OpenCV convention (see the module docstring).
+
+    **Arguments / fields:**
+
+    - `scale`: world units per pixel (traced scalar, > 0).
+    - `width`, `height`: image size in pixels (static ints).
+    - `cam_to_world`: `(4, 4)` camera-to-world matrix (traced).
+
+    Pixel $(i, j)$ looks along the camera +z axis from the camera-frame
+    point $((j + \\tfrac12 - W/2)\\,s, (i + \\tfrac12 - H/2)\\,s, 0)$.
+    """
+
+    scale: Float[Array, ""]
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+    cam_to_world: Float[Array, "4 4"]
+    model: ClassVar[str] = "orthographic"
+
+    def __init__(self, scale, width, height, cam_to_world):
+        self.width = check_positive_int(width, "width")
+        self.height = check_positive_int(height, "height")
+        m = _matrix4(cam_to_world)
+        s = _scalar(scale, "scale")
+        _require_positive(s, "scale")
+        dt = _widest([m, s])
+        self.scale = s.astype(dt)
+        self.cam_to_world = m.astype(dt)
+
+
+Camera = PinholeCamera | OrthographicCamera
+
+
+def _check_camera(camera):
+    if not isinstance(camera, (PinholeCamera, OrthographicCamera)):
+        raise ValueError(
+            f"`camera` must be a PinholeCamera or an OrthographicCamera, got {type(camera).__name__}"
+        )
+    return camera
+
+
+def camera_rays(camera: Camera) -> tuple[Float[Array, "H W 3"], Float[Array, "H W 3"]]:
+    """World-space rays through the pixel centres of a camera.
+
+    Pinhole: origin = camera centre $t$ (all pixels), direction
+    $R\\,((u - c_x)/f_x, (v - c_y)/f_y, 1)$ normalized, with
+    $(u, v) = (j + \\tfrac12, i + \\tfrac12)$ for pixel (row $i$, column $j$).
+    Orthographic: origin $R\\,((u - W/2)s, (v - H/2)s, 0) + t$, direction
+    the camera +z axis $R e_z$. ($R$, $t$ are the blocks of `cam_to_world`.)
+
+    Jitted; differentiable in the camera's array fields.
+
+    **Arguments:** `camera`: a `PinholeCamera` or `OrthographicCamera`.
+
+    **Returns:** `(origins, directions)`, each `(height, width, 3)`;
+    directions are unit vectors.
+    """
+    return _camera_rays(_check_camera(camera))
+
+
+@eqx.filter_jit
+def _camera_rays(camera):
+    h, w = camera.height, camera.width
+    m = camera.cam_to_world
+    dt = m.dtype
+    rot, t = m[:3, :3], m[:3, 3]
+    u = jnp.broadcast_to((jnp.arange(w, dtype=dt) + 0.5)[None, :], (h, w))
+    v = jnp.broadcast_to((jnp.arange(h, dtype=dt) + 0.5)[:, None], (h, w))
+    if isinstance(camera, PinholeCamera):
+        fx = eqx.error_if(camera.fx, ~(camera.fx > 0.0), "PinholeCamera: `fx` must be positive")
+        fy = eqx.error_if(camera.fy, ~(camera.fy > 0.0), "PinholeCamera: `fy` must be positive")
+        d_cam = jnp.stack([(u - camera.cx) / fx, (v - camera.cy) / fy, jnp.ones_like(u)], axis=-1)
+        d = jnp.einsum("ij,hwj->hwi", rot, d_cam)
+        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        o = jnp.broadcast_to(t[None, None, :], (h, w, 3))
+    else:
+        s = eqx.error_if(camera.scale, ~(camera.scale > 0.0), "OrthographicCamera: `scale` must be positive")
+        p_cam = jnp.stack([(u - 0.5 * w) * s, (v - 0.5 * h) * s, jnp.zeros_like(u)], axis=-1)
+        o = jnp.einsum("ij,hwj->hwi", rot, p_cam) + t[None, None, :]
+        axis = rot[:, 2] / jnp.linalg.norm(rot[:, 2])
+        d = jnp.broadcast_to(axis[None, None, :], (h, w, 3))
+    return o, d
+
+
+def look_at(
+    eye: Float[Array, "*batch 3"],
+    target: Float[Array, "*batch 3"],
+    up: Float[Array, "*batch 3"] = (0.0, 0.0, 1.0),
+) -> Float[Array, "*batch 4 4"]:
+    """A camera-to-world matrix looking from `eye` at `target` (OpenCV convention).
+
+    Camera axes in world coordinates: $z = (\\text{target} - \\text{eye})/\\|\\cdot\\|$
+    (forward), $x = z \\times \\text{up}$ normalized (right), $y = z \\times x$
+    (down, the component of $-\\text{up}$ orthogonal to $z$); the matrix is
+    $\\begin{pmatrix} x & y & z & \\text{eye} \\\\ 0 & 0 & 0 & 1\\end{pmatrix}$,
+    a proper rotation. So the target is imaged at the principal point and
+    `up` points up in the image. When `up` is parallel to the viewing
+    direction another world axis (the one least aligned with $z$) is used.
+
+    **Arguments:** `eye`, `target`, `up`: `(..., 3)` (broadcast; traced,
+    differentiable). `up` defaults to world +z.
+
+    **Returns:** `(..., 4, 4)`.
+    """
+    eye = as_float_array(eye, "eye")
+    target = as_float_array(target, "target")
+    up = as_float_array(up, "up")
+    batch = ()
+    for name, a in (("eye", eye), ("target", target), ("up", up)):
+        if a.ndim < 1 or a.shape[-1] != 3:
+            raise ValueError(f"`{name}` must have shape (..., 3), got {tuple(a.shape)}")
+        try:
+            batch = jnp.broadcast_shapes(batch, a.shape[:-1])
+        except ValueError:
+            raise ValueError(f"the batch shape of `{name}`, {a.shape[:-1]}, does not broadcast with {batch}") from None
+    dt = _widest([eye, target, up])
+    eye, target, up = (jnp.broadcast_to(a.astype(dt), batch + (3,)) for a in (eye, target, up))
+    try:
+        gap = np.linalg.norm(np.asarray(target) - np.asarray(eye), axis=-1)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        gap = None
+    if gap is not None and np.any(gap == 0.0):
+        raise ValueError("`look_at`: `eye` and `target` coincide, the viewing direction is undefined")
+    return _look_at(eye, target, up)
+
+
+@eqx.filter_jit
+def _look_at(eye, target, up):
+    z = target - eye
+    z = z / jnp.linalg.norm(z, axis=-1, keepdims=True)
+    x = jnp.cross(z, up)
+    nx = jnp.linalg.norm(x, axis=-1, keepdims=True)
+    nup = jnp.linalg.norm(up, axis=-1, keepdims=True)
+    degenerate = nx <= 1e-9 * nup
+    # fallback up: the world axis least aligned with z
+    k = jnp.argmin(jnp.abs(z), axis=-1)
+    alt = jax.nn.one_hot(k, 3, dtype=z.dtype)
+    x_alt = jnp.cross(z, alt)
+    x = jnp.where(degenerate, x_alt, x)
+    nx = jnp.linalg.norm(x, axis=-1, keepdims=True)
+    x = x / nx
+    y = jnp.cross(z, x)
+    rot = jnp.stack([x, y, z], axis=-1)
+    top = jnp.concatenate([rot, eye[..., :, None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 0.0, 1.0], dtype=eye.dtype), eye.shape[:-1] + (1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
