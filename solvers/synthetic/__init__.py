@@ -9,7 +9,7 @@ inverse problems they feed live in `solvers` itself.
   `default_sources()` seen by `view_cameras(...)`, into a `SyntheticCapture`;
   `procedural_sky` is an HDR lat-long sky with a sun lobe.
 * Reflectance-sharing scenes (Zickler et al. 2006 secs. 6.1, 7.1, 8.4;
-  `_sharing.py`): sphere geometry, light sets, reference BRDFs, the
+  `_sharing_scenes.py`): sphere geometry, light sets, reference BRDFs, the
   parametric baselines (`fit_ward`, `fit_lafortune`), per-pixel
   "no sharing" interpolation and the paper's protocols.
 
@@ -25,7 +25,7 @@ from ._sphere import (
     sphere_capture as sphere_capture,
     view_cameras as view_cameras,
 )
-from ._sharing import (
+from ._sharing_scenes import (
     VIEW as VIEW,
     ParametricBRDF as ParametricBRDF,
     albedo_texture as albedo_texture,
