@@ -18,7 +18,6 @@ with the default `throw=False` the caller checks `result.status`.
 This mirrors `optimistix.RESULTS` / `throw=` (optimistix `_solution.py`).
 """
 
-from __future__ import annotations
 
 from typing import Any
 
