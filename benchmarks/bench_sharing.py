@@ -180,7 +180,7 @@ def main():
     jax.block_until_ready(g.model.weights)
     t_warm = time.perf_counter() - t0
     tab.add(f"greedy {k_g} of {len(p_g)}", "jaxsh fit_sharing", fmt_t(t_warm), fmt_t(t_first), "",
-            f"rel. RMS {float(g.rms):.4f}, {len(g.history_centers)} rounds")
+            f"rel. RMS {float(g.rel_rms):.4f}, {len(g.history_centers)} rounds")
     t0 = time.perf_counter()
     itp = scipy_greedy(p_g, v_g, w, k_g, k_g // 10, k_g // 10)
     t_sp = time.perf_counter() - t0

@@ -116,7 +116,10 @@ from ._raycast import (
 from ._practical import PracticalTerms as PracticalTerms, practical_terms as practical_terms
 from ._rbf import (
     RBFModel as RBFModel,
+    rbf_auto_chunk as rbf_auto_chunk,
     rbf_evaluate as rbf_evaluate,
+    rbf_fit as rbf_fit,
+    rbf_solve as rbf_solve,
     sbrdf_points as sbrdf_points,
     scaled_distances as scaled_distances,
 )
