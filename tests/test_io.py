@@ -42,7 +42,7 @@ def test_pfm_follows_the_format_spec(tmp_path):
 def test_png_is_srgb_encoded(tmp_path):
     img = np.full((2, 2, 3), 0.2, np.float32)
     jio.write_image(tmp_path / "a.png", img)
-    back = jio.read_image(tmp_path / "a.png")
+    back = jio.read_image(tmp_path / "a.png", encoding="srgb")
     np.testing.assert_allclose(back, 0.2, atol=0.004)  # decoded to linear within 8-bit quantization
     import OpenImageIO as oiio
 
