@@ -73,7 +73,7 @@ def _check_readable(path: str, what: str = "image") -> None:
     if not os.path.exists(path):
         raise FileNotFoundError(f"{what} file not found: {path}")
     if os.path.isdir(path):
-        raise IsADirectoryError(f"{path}: is a directory, expected an {what} file")
+        raise IsADirectoryError(f"{path}: is a directory, expected a file ({what})")
 
 
 def read_image_info(path) -> dict:
@@ -161,8 +161,9 @@ def read_image(path, encoding: str | None = None) -> np.ndarray:
       file and `encoding`: metadata such as PNG's sRGB chunk is not trusted).
       Float images are linear: `None` or `"linear"`; `"srgb"` is an error.
 
-    Raises `FileNotFoundError` / `ValueError` naming the file when it is
-    missing, a directory, unreadable or of an unsupported pixel type.
+    Raises `FileNotFoundError` / `IsADirectoryError` / `ValueError` naming
+    the file when it is missing, a directory, unreadable or of an
+    unsupported pixel type.
     """
     path = os.fspath(path)
     arr, info = _read_pixels(path)
@@ -297,7 +298,7 @@ def write_image(path, array, *, exposure: float = 0.0) -> None:
     path = os.fspath(path)
     raw = np.asarray(array)
     if np.iscomplexobj(raw):
-        raise ValueError(f"refusing to write a complex array to {path}: images are real")
+        raise ValueError(f"{path}: refusing to write a complex array: images are real")
     if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer) or raw.dtype == bool):
         raise ValueError(f"`array` must be real numbers, got dtype {raw.dtype} (writing {path})")
     arr = raw.astype(np.float32)
@@ -307,12 +308,12 @@ def write_image(path, array, *, exposure: float = 0.0) -> None:
         raise ValueError(f"`array` must have shape (H, W) or (H, W, C), got {raw.shape} (writing {path})")
     bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
     if bad:
-        raise ValueError(f"refusing to write non-finite values to {path}: {bad} of {arr.size} values are NaN or inf")
+        raise ValueError(f"{path}: refusing to write non-finite values: {bad} of {arr.size} values are NaN or inf")
     oiio = _oiio()
     ext = os.path.splitext(path)[1].lower()
     if ext == ".hdr" and np.any(arr < 0):
         n = int(np.count_nonzero(arr < 0))
-        raise ValueError(f"refusing to write negative values to {path}: RGBE (.hdr) cannot store them ({n} values < 0)")
+        raise ValueError(f"{path}: refusing to write negative values: RGBE (.hdr) cannot store them ({n} values < 0)")
     h, w, c = arr.shape
     if ext in _LDR:
         data = np.clip(_linear_to_srgb(np.clip(arr * 2.0**exposure, 0.0, 1.0)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
