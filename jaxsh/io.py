@@ -322,7 +322,12 @@ def write_image(path, array, *, exposure: float = 0.0) -> None:
         data = arr
         spec = oiio.ImageSpec(w, h, c, "float")
     with atomic_output(path) as tmp:
-        _write_pixels(tmp, spec, data)
+        try:
+            _write_pixels(tmp, spec, data)
+        except OSError as e:
+            if e.filename is None or e.filename == tmp:
+                e.filename = path  # name the target, not the temporary file
+            raise
 
 
 def _srgb_to_linear(x):
