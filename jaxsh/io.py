@@ -324,10 +324,10 @@ def write_image(path, array, *, exposure: float = 0.0) -> None:
     with atomic_output(path) as tmp:
         try:
             _write_pixels(tmp, spec, data)
-        except OSError as e:
-            if e.filename is None or e.filename == tmp:
-                e.filename = path  # name the target, not the temporary file
-            raise
+        except OSError as e:  # name the target, not the temporary file
+            if e.errno is None:
+                raise OSError(f"{path}: {e}") from e
+            raise OSError(e.errno, e.strerror, path) from e
 
 
 def _srgb_to_linear(x):
