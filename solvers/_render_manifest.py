@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
@@ -25,7 +26,7 @@ def lighting_from_manifest(m: dict, sigma: float, lmax: int | None = None):
     lit = m["lighting"]
     slow = None
     if lit["envmap"] is not None:
-        env = jio.read_envmap(lit["envmap"], up=lit["up"], layout=lit["layout"]).astype(np.float64)
+        env = jio.read_envmap(lit["envmap"], up=lit["up"], layout=lit["layout"], encoding=lit.get("encoding")).astype(np.float64)
         h = env.shape[0]
         if lmax is None:
             lmax = int(min(math.ceil(4.0 / sigma), h // 2 - 1))
@@ -37,15 +38,67 @@ def lighting_from_manifest(m: dict, sigma: float, lmax: int | None = None):
     return slow, fd, fe
 
 
-def _inputs(m: dict) -> set:
-    paths = {m["path"]}
-    if "mesh" in m["geometry"]:
-        paths.add(m["geometry"]["mesh"])
+def _inputs(m: dict) -> list[str]:
+    """Every file a validated manifest reads (the manifest itself included)."""
+    paths = [m["path"]]
+    geo = m["geometry"]
+    paths += [geo[k] for k in ("mesh", "normal_map") if k in geo]
+    lightings = [m["lighting"]] + [v.get("lighting") for v in m["views"]]
+    paths += [lit["envmap"] for lit in lightings if lit and lit.get("envmap")]
     for v in m["views"]:
-        paths.update(p for p in (v["image"], v["mask"]) if p)
-    if m["lighting"] and m["lighting"]["envmap"]:
-        paths.add(m["lighting"]["envmap"])
-    return {os.path.abspath(p) for p in paths}
+        paths += [v[k] for k in ("image", "mask", "normal_map") if v.get(k)]
+    return [os.path.abspath(p) for p in paths]
+
+
+def check_unsupported(m: dict, command: str) -> None:
+    """Stop with a one-line `ManifestError` on a parsed field the fitting/rendering code cannot use yet."""
+    fields = []
+    if "normal_map" in m["geometry"]:
+        fields.append("geometry.normal_map")
+    for k, v in enumerate(m["views"]):
+        if v.get("normal_map"):
+            fields.append(f"views[{k}].normal_map")
+        if v.get("lighting") is not None:
+            fields.append(f"views[{k}].lighting")
+    if m["solve"].get("brdf_model", "torrance_sparrow") != "torrance_sparrow":
+        fields.append(f"solve.brdf_model = {m['solve']['brdf_model']!r}")
+    if fields:
+        more = f" (and {len(fields) - 1} more)" if len(fields) > 1 else ""
+        raise jio.ManifestError(f"{m['path']}: `{fields[0]}` is not supported yet by `jaxsh {command}`{more}")
+
+
+def check_outputs(m: dict, out_dir, names) -> list[str]:
+    """Check `--out` before any work; return the absolute output paths for `names`.
+
+    Refuses (`ValueError`, one line) an `out_dir` that exists and is not a
+    directory, and any output that would replace an input: compared by real
+    path (symlinks, `--out .`, an input inside the output folder) and by file
+    identity (`st_dev`, `st_ino`: hard links).
+    """
+    out_dir = os.fspath(out_dir)
+    if os.path.lexists(out_dir) and not os.path.isdir(out_dir):
+        raise ValueError(f"--out {out_dir}: exists and is not a directory")
+    real = {}
+    ids = {}
+    for p in _inputs(m):
+        real[os.path.realpath(p)] = p
+        with contextlib.suppress(OSError):
+            st = os.stat(p)
+            ids[(st.st_dev, st.st_ino)] = p
+    outs = []
+    for name in names:
+        p = os.path.abspath(os.path.join(out_dir, name))
+        hit = real.get(os.path.realpath(p))
+        if hit is None and os.path.exists(p):
+            st = os.stat(p)
+            hit = ids.get((st.st_dev, st.st_ino))
+        if hit is not None:
+            same = "" if os.path.realpath(p) == os.path.realpath(hit) else " (the same file)"
+            raise ValueError(f"--out {out_dir}: refusing to overwrite the input file {hit} with the output {p}{same}")
+        if os.path.isdir(p):
+            raise ValueError(f"--out {out_dir}: the output {p} is a directory")
+        outs.append(p)
+    return outs
 
 
 def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
@@ -53,20 +106,23 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
 
     Meshes get shadowing (directional and reflected visibility) and
     visibility-weighted irradiance (SH transfer vectors, lmax 2) computed once
-    per view (R&H sec. 6.4). Raises `ValueError` if lighting or BRDF are not
-    given, or if an output would overwrite an input.
+    per view (R&H sec. 6.4). Everything is checked before rendering: raises
+    `ManifestError`/`ValueError` if lighting or BRDF are not given, a parsed
+    field is not supported yet, or an output would overwrite an input.
+    Files are written atomically.
     """
     m = jio.read_manifest(manifest_path)
     if m["lighting"] is None or m["brdf"] is None:
-        raise ValueError(f"{m['path']}: `jaxsh render` needs both `lighting` and `brdf` in the manifest")
+        raise jio.ManifestError(f"{m['path']}: `jaxsh render` needs both `lighting` and `brdf` in the manifest")
+    check_unsupported(m, "render")
+    n = len(m["views"])
+    outs = check_outputs(m, out_dir, [f"view_{k:03d}{ext}" for k in range(n) for ext in (".exr", ".png")])
     b = m["brdf"]
     lmax = m["solve"].get("render_lmax")
     slow, fd, fe = lighting_from_manifest(m, b["sigma"], lmax)
     mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
     os.makedirs(out_dir, exist_ok=True)
-    inputs = _inputs(m)
     written = []
-    n = len(m["views"])
     for k, view in enumerate(m["views"]):
         if progress:
             print(f"[{k + 1}/{n}] rendering view {k}", file=sys.stderr, flush=True)
@@ -82,11 +138,7 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
             fast_directions=fd, fast_energy=fe, mask=g.mask, **extra,
         )
         img = np.asarray(out.total)
-        base = os.path.join(out_dir, f"view_{k:03d}")
-        for ext in (".exr", ".png"):
-            p = os.path.abspath(base + ext)
-            if p in inputs:
-                raise ValueError(f"refusing to overwrite the input file {p}")
+        for p in outs[2 * k : 2 * k + 2]:
             jio.write_image(p, img)
             written.append(p)
     return written
