@@ -488,7 +488,7 @@ _SCENE_MODULES = (
     "jaxsh._gbuffer",
     "jaxsh._raycast",
     "solvers.synthetic._sphere",
-    "solvers.synthetic._sharing",
+    "solvers.synthetic._sharing_scenes",
 )
 
 
