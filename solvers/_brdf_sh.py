@@ -25,13 +25,23 @@ from jaxtyping import Array, Float, Int
 
 import jaxsh
 
-from ._data import Observations, Status
+from ._data import Observations
+from ._results import Solution, Status, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 
-class BRDFSHResult(eqx.Module):
-    """Result of `fit_brdf_sh`: `rho` `(lmax+1, lmax+1, lmax+1, C)`, `rank` `(C,)` of the design
-    matrix, `n_unknowns` (entries with $q \\le \\min(l, p)$), `status`, `rms`, `rel_rms`."""
+class BRDFSHResult(Solution):
+    """Result of `fit_brdf_sh` (a `solvers.Solution`; `estimate` is `rho`).
+
+    - `rho`: `(lmax+1, lmax+1, lmax+1, C)` the coefficients $\\hat\\rho_{lpq}$.
+    - `rank`: `(C,)` numerical rank of the weighted design matrix.
+    - `n_unknowns`: entries with $q \\le \\min(l, p)$ (static).
+    - `status`: `converged`, `nonfinite` or `no_signal` (a rank below
+      `n_unknowns` is reported by `rank`, the solution being minimum-norm).
+    - `iterations`: 0 (a direct solve); `rms`, `rel_rms` (never NaN).
+    - `stats`: `singular_values` `(C, n_unknowns)` of the design matrix
+      (descending), `n_obs` (weighted samples × channels).
+    """
 
     rho: Float[Array, "l p q C"]
     rank: Int[Array, " C"]
@@ -39,6 +49,12 @@ class BRDFSHResult(eqx.Module):
     status: Status
     rms: Float[Array, ""]
     rel_rms: Float[Array, ""]
+    iterations: Int[Array, ""]
+    stats: dict
+
+    @property
+    def estimate(self) -> Float[Array, "l p q C"]:
+        return self.rho
 
 
 def _frame_angles(n, v):
@@ -71,12 +87,20 @@ def brdf_sh_design(normals, views, L_complex, lmax: int):
 
 
 @blas_single_thread
-def fit_brdf_sh(obs: Observations, lighting_sh: Float[Array, "n_coeffs C"], lmax: int, *, rcond: float | None = None) -> BRDFSHResult:
+def fit_brdf_sh(
+    obs: Observations,
+    lighting_sh: Float[Array, "n_coeffs C"],
+    lmax: int,
+    *,
+    rcond: float | None = None,
+    throw: bool = False,
+) -> BRDFSHResult:
     """Solve for $\\hat\\rho_{lpq}$, $l, p \\le$ `lmax`, from images of a sphere under known lighting (module docstring).
 
     **Arguments:** `obs` (convex object: no visibility terms); `lighting_sh`
     real SH lighting `(n_coeffs, C)` with at least `lmax`; `lmax` static;
-    `rcond` for the SVD (default 1e-10 in float64, 1e-5 in float32).
+    `rcond` for the SVD (default 1e-10 in float64, 1e-5 in float32);
+    `throw`: raise `solvers.SolveError` unless the status is `converged`.
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
@@ -94,7 +118,7 @@ def fit_brdf_sh(obs: Observations, lighting_sh: Float[Array, "n_coeffs C"], lmax
     rcond = (1e-10 if dt == jnp.float64 else 1e-5) if rcond is None else float(rcond)
     ls, ps, qs = np.meshgrid(np.arange(lmax + 1), np.arange(lmax + 1), np.arange(lmax + 1), indexing="ij")
     valid = (qs <= np.minimum(ls, ps)).reshape(-1)
-    return _fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond)
+    return finish(_fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond), throw)
 
 
 @eqx.filter_jit
@@ -109,16 +133,17 @@ def _fit_brdf_sh(obs, L, lmax, cols, rcond):
         keep = s > rcond * s[0]
         x = vt.T @ (jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0) * (u.T @ (sw * b)))
         r = a @ x - sw * b
-        return x, jnp.sum(keep), jnp.sum(r * r)
+        return x, jnp.sum(keep), jnp.sum(r * r), s
 
-    x, rank, rss = jax.vmap(channel, in_axes=(1, 1))(lc, obs.values)
+    x, rank, rss, sv = jax.vmap(channel, in_axes=(1, 1))(lc, obs.values)
     c = L.shape[1]
     rho = jnp.zeros(((lmax + 1) ** 3, c), obs.values.dtype).at[cols].set(x.T).reshape((lmax + 1,) * 3 + (c,))
     nobs = jnp.sum((obs.weights > 0).astype(rss.dtype)) * c
-    rms = jnp.sqrt(jnp.sum(rss) / nobs)
-    rel = rms / jnp.sqrt(jnp.sum(obs.weights[:, None] * obs.values**2) / nobs)
-    status = Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite)
-    return BRDFSHResult(rho, rank, int(cols.shape[0]), status, rms, rel)
+    data_ss = jnp.sum(obs.weights[:, None] * obs.values**2)
+    rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
+    status = worst(Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite), signal_status(data_ss))
+    return BRDFSHResult(rho=rho, rank=rank, n_unknowns=int(cols.shape[0]), status=status, rms=rms, rel_rms=rel,
+                        iterations=jnp.asarray(0), stats={"singular_values": sv, "n_obs": nobs})
 
 
 def predict_brdf_sh(rho, lighting_sh, normals, views):
