@@ -93,6 +93,7 @@ from ._lighting import (
     is_fast_source as is_fast_source,
     split_disk_sources as split_disk_sources,
 )
+from ._model import Lighting as Lighting, TorranceSparrow as TorranceSparrow
 from ._render import Components as Components, render_practical as render_practical, render_reference as render_reference
 from ._camera import (
     OrthographicCamera as OrthographicCamera,

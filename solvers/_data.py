@@ -4,10 +4,9 @@
   to `N` samples (normal, view, radiance, weight, optional visibility terms
   and texel index). Build it with `observations(gbuffers, images, ...)`,
   which validates the images and drops or rejects bad pixels.
-* `Lighting`: slow SH lighting plus fast (delta) sources, the two parts of
-  the practical model (R&H sec. 5.3).
-* `TorranceSparrow`: the BRDF parameters $K_d, K_s, \\mu, \\sigma$ of R&H
-  sec. 5.2, with optional texture maps for $K_d$ / $K_s$ (sec. 6.4).
+* `Lighting`, `TorranceSparrow`: `jaxsh.Lighting` and `jaxsh.TorranceSparrow`
+  (the same objects, re-exported): the lighting of R&H sec. 5.3 and the BRDF
+  parameters of sec. 5.2.
 * `Status`: the outcome of a solve. Every solver result carries one; a
   failed solve is a status, never a silent NaN.
 """
@@ -22,65 +21,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 import jaxsh
+from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
 from ._results import Status as Status, status_name as status_name  # re-exported for older imports
-
-
-class Lighting(eqx.Module):
-    """Distant lighting in the world frame (+z up): slow SH part plus fast delta sources.
-
-    **Fields:**
-
-    - `slow_sh`: `(n_coeffs, C)` real SH coefficients or `None`.
-    - `fast_directions`: `(J, 3)` unit directions towards the sources, or `None`.
-    - `fast_energy`: `(J, C)` total energy $L_j$ of each source (eq. 23), or `None`.
-    """
-
-    slow_sh: Float[Array, "n_coeffs C"] | None = None
-    fast_directions: Float[Array, "J 3"] | None = None
-    fast_energy: Float[Array, "J C"] | None = None
-
-    def __check_init__(self):
-        if self.slow_sh is None and self.fast_directions is None:
-            raise ValueError("Lighting needs `slow_sh` and/or `fast_directions` + `fast_energy`")
-        if (self.fast_directions is None) != (self.fast_energy is None):
-            raise ValueError("Lighting: `fast_directions` and `fast_energy` go together")
-
-    @property
-    def lmax(self) -> int | None:
-        if self.slow_sh is None:
-            return None
-        return int(round(np.sqrt(self.slow_sh.shape[0]))) - 1
-
-    def total_sh(self, lmax: int) -> Float[Array, "n_coeffs C"]:
-        """SH coefficients of all of the lighting (fast sources projected as deltas) to `lmax`."""
-        parts = []
-        if self.slow_sh is not None:
-            s = jnp.asarray(self.slow_sh)
-            n = jaxsh.num_coeffs(lmax)
-            s = s[:n] if s.shape[0] >= n else jnp.pad(s, ((0, n - s.shape[0]), (0, 0)))
-            parts.append(s)
-        if self.fast_directions is not None:
-            parts.append(jaxsh.directional_light_sh(self.fast_directions, self.fast_energy, lmax))
-        out = parts[0]
-        for p in parts[1:]:
-            out = out + p
-        return out
-
-
-class TorranceSparrow(eqx.Module):
-    """R&H sec. 5.2 BRDF parameters: $\\rho = K_d + K_s F(\\mu,\\theta_o) S / (4\\cos\\theta_i\\cos\\theta_o)$.
-
-    `kd`, `ks`: `(C,)` homogeneous, or `(T, C)` per texel (with
-    `Observations.texel`). `mu`: scalar index of refraction, or `None` for
-    no Fresnel term ($F = 1$, metals in R&H fig. 11). `sigma`: scalar
-    roughness (radians).
-    """
-
-    kd: Float[Array, "*T C"]
-    ks: Float[Array, "*T C"]
-    mu: Float[Array, ""] | None
-    sigma: Float[Array, ""]
 
 
 class Observations(eqx.Module):
@@ -288,18 +231,15 @@ def observations(
 
 
 def practical_terms_for(obs: Observations, lighting: Lighting, chunk: int = 8192) -> jaxsh.PracticalTerms:
-    """`jaxsh.practical_terms` of the observed pixels under `lighting` (visibility included)."""
-    if lighting.fast_directions is not None and obs.fast_visibility is not None:
-        if obs.fast_visibility.shape[1] != lighting.fast_directions.shape[0]:
-            raise ValueError(
-                f"`Observations.fast_visibility` has {obs.fast_visibility.shape[1]} sources, the lighting "
-                f"has {lighting.fast_directions.shape[0]}"
-            )
+    """`jaxsh.practical_terms` of the observed pixels under `lighting`, with the visibility terms of `obs`.
+
+    The visibility terms of a lighting part that `lighting` lacks are not used.
+    """
     return jaxsh.practical_terms(
-        obs.normals, obs.views, slow_sh=lighting.slow_sh, fast_directions=lighting.fast_directions,
-        fast_energy=lighting.fast_energy, transfer=None if lighting.slow_sh is None else obs.transfer,
+        obs.normals, obs.views, lighting, chunk=chunk,
+        transfer=None if lighting.slow_sh is None else obs.transfer,
         fast_visibility=None if lighting.fast_directions is None else obs.fast_visibility,
-        reflected_visibility=None if lighting.slow_sh is None else obs.reflected_visibility, chunk=chunk,
+        reflected_visibility=None if lighting.slow_sh is None else obs.reflected_visibility,
     )
 
 
@@ -310,15 +250,11 @@ def predict(
     views: Float[Array, "*batch 3"],
     **visibility,
 ) -> Float[Array, "*batch C"]:
-    """Radiance of `brdf` under `lighting` at new normals / views: `jaxsh.render_practical(...).total`.
+    """Radiance of `brdf` under `lighting` at new normals / views: `jaxsh.render_practical(normals, views, brdf, lighting).total`.
 
     For novel lighting and views from any solver result
     (`predict(result.brdf, new_lighting, gb.normal, gb.view, mask=gb.mask)`).
     Extra keyword arguments (`transfer`, `fast_visibility`,
     `reflected_visibility`, `mask`) go to `render_practical`.
     """
-    kd, ks = brdf.kd, brdf.ks
-    return jaxsh.render_practical(
-        normals, views, kd, ks, brdf.mu, brdf.sigma, slow_sh=lighting.slow_sh,
-        fast_directions=lighting.fast_directions, fast_energy=lighting.fast_energy, **visibility,
-    ).total
+    return jaxsh.render_practical(normals, views, brdf, lighting, **visibility).total
