@@ -158,10 +158,6 @@ def _safe_sqrt(x):
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
-def _safe_norm(v):
-    return _safe_sqrt(_dot(v, v))
-
-
 def _safe_normalize(v, fallback):
     """v/|v|, or `fallback` where |v| = 0 (finite gradients everywhere)."""
     n2 = _dot(v, v)[..., None]
