@@ -103,6 +103,7 @@ from ._camera import (
 )
 from ._gbuffer import (
     GBuffer as GBuffer,
+    normal_map_gbuffer as normal_map_gbuffer,
     sphere_gbuffer as sphere_gbuffer,
     visibility_weighted_irradiance as visibility_weighted_irradiance,
 )

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array, check_positive_int
+from ._checks import as_float_array, check_positive_int, is_traced
 
 # --------------------------------------------------------------------------- helpers
 
@@ -63,11 +63,59 @@ def _require_positive(a, name: str) -> None:
         raise ValueError(f"`{name}` must be a finite positive number, got {v}")
 
 
+def _require_finite(a, name: str) -> None:
+    """Raise a ValueError if a concrete array holds NaN or inf (traced values are checked later)."""
+    if is_traced(a):
+        return
+    if not bool(jnp.all(jnp.isfinite(a))):
+        raise ValueError(f"`{name}` must be finite (no NaN or inf), got {np.asarray(a)}")
+
+
+def _rotation_tol(dtype) -> float:
+    """Tolerance of the orthonormality check: 1e-6 in float64, 1e-4 in float32."""
+    return 1e-6 if jnp.dtype(dtype).itemsize >= 8 else 1e-4
+
+
+def _pose_error(m):
+    """(max |RᵀR − I|, det R, max |last row − [0,0,0,1]|) of a 4×4 pose (JAX, traceable)."""
+    rot = m[:3, :3]
+    orth = jnp.max(jnp.abs(rot.T @ rot - jnp.eye(3, dtype=m.dtype)))
+    row = jnp.max(jnp.abs(m[3] - jnp.asarray([0.0, 0.0, 0.0, 1.0], m.dtype)))
+    return orth, jnp.linalg.det(rot), row
+
+
 def _matrix4(m, name: str = "cam_to_world"):
+    """A camera-to-world pose: (4, 4), finite, rotation block orthonormal with det +1, last row [0, 0, 0, 1].
+
+    Checked here for concrete matrices (ValueError); a traced matrix is
+    checked at run time by `camera_rays` (`_check_pose`).
+    """
     m = as_float_array(m, name)
     if m.shape != (4, 4):
         raise ValueError(f"`{name}` must have shape (4, 4), got {tuple(m.shape)}")
+    if is_traced(m):
+        return m
+    _require_finite(m, name)
+    orth, det, row = (float(v) for v in _pose_error(m))
+    tol = _rotation_tol(m.dtype)
+    if row > tol:
+        raise ValueError(f"`{name}` must have last row [0, 0, 0, 1], got {np.asarray(m[3]).tolist()}")
+    if orth > tol or det < 0:
+        raise ValueError(
+            f"`{name}` must hold a rotation in its upper 3x3 block (orthonormal within {tol:g}, det +1); "
+            f"max |R^T R - I| = {orth:.3g}, det = {det:.6g}"
+        )
     return m
+
+
+def _check_pose(m, who: str):
+    """Run-time form of the `_matrix4` check (for cameras built from traced values)."""
+    orth, det, row = _pose_error(m)
+    tol = _rotation_tol(m.dtype)
+    bad = ~jnp.all(jnp.isfinite(m)) | ~(orth <= tol) | ~(det > 0) | ~(row <= tol)
+    return eqx.error_if(
+        m, bad, f"{who}: `cam_to_world` must be finite with a rotation block (orthonormal, det +1) and last row [0, 0, 0, 1]"
+    )
 
 
 # --------------------------------------------------------------------------- cameras
@@ -85,10 +133,13 @@ class PinholeCamera(eqx.Module):
     - `cam_to_world`: `(4, 4)` camera-to-world matrix (traced); its upper
       3×3 block should be a rotation (see `look_at`).
 
-    All arrays are converted to one float dtype (the widest given). A
-    non-positive focal length raises `ValueError` at construction (or, when
-    the camera is built from traced values, an error at run time of
-    `camera_rays`).
+    All arrays are converted to one float dtype (the widest given).
+    Validation (`ValueError` naming the argument at construction; when the
+    camera is built from traced values, an error at run time of
+    `camera_rays`): `fx`, `fy` finite and > 0; `cx`, `cy` finite;
+    `width`, `height` positive Python ints (16.7 is an error, not 16);
+    `cam_to_world` finite, its 3×3 block a rotation (orthonormal within
+    1e-6 in float64, 1e-4 in float32, det +1), its last row [0, 0, 0, 1].
     """
 
     fx: Float[Array, ""]
@@ -107,6 +158,8 @@ class PinholeCamera(eqx.Module):
         params = [_scalar(fx, "fx"), _scalar(fy, "fy"), _scalar(cx, "cx"), _scalar(cy, "cy")]
         _require_positive(params[0], "fx")
         _require_positive(params[1], "fy")
+        _require_finite(params[2], "cx")
+        _require_finite(params[3], "cy")
         dt = _widest([m] + params)
         self.fx, self.fy, self.cx, self.cy = (p.astype(dt) for p in params)
         self.cam_to_world = m.astype(dt)
@@ -123,6 +176,9 @@ class OrthographicCamera(eqx.Module):
 
     Pixel $(i, j)$ looks along the camera +z axis from the camera-frame
     point $((j + \\tfrac12 - W/2)\\,s, (i + \\tfrac12 - H/2)\\,s, 0)$.
+
+    Validated as `PinholeCamera`: `scale` finite and > 0, `width`/`height`
+    positive ints, `cam_to_world` a finite rigid pose.
     """
 
     scale: Float[Array, ""]
@@ -162,7 +218,10 @@ def camera_rays(camera: Camera) -> tuple[Float[Array, "H W 3"], Float[Array, "H 
     Orthographic: origin $R\\,((u - W/2)s, (v - H/2)s, 0) + t$, direction
     the camera +z axis $R e_z$. ($R$, $t$ are the blocks of `cam_to_world`.)
 
-    Jitted; differentiable in the camera's array fields.
+    Jitted; differentiable in the camera's array fields. The camera's
+    fields are checked again here (at run time, `equinox.error_if`): a
+    camera whose fields were replaced by invalid values (e.g. with
+    `eqx.tree_at`, or built from traced values) is an error, not a NaN ray.
 
     **Arguments:** `camera`: a `PinholeCamera` or `OrthographicCamera`.
 
@@ -175,20 +234,27 @@ def camera_rays(camera: Camera) -> tuple[Float[Array, "H W 3"], Float[Array, "H 
 @eqx.filter_jit
 def _camera_rays(camera):
     h, w = camera.height, camera.width
-    m = camera.cam_to_world
+    # Every check is attached to the pose matrix, which feeds both outputs: a caller that keeps only
+    # the directions (or only the origins) still gets the error.
+    m = _check_pose(camera.cam_to_world, type(camera).__name__)
+    if isinstance(camera, PinholeCamera):
+        intr = jnp.stack([camera.fx, camera.fy, camera.cx, camera.cy])
+        m = eqx.error_if(m, ~((camera.fx > 0.0) & jnp.isfinite(camera.fx)), "PinholeCamera: `fx` must be finite and positive")
+        m = eqx.error_if(m, ~((camera.fy > 0.0) & jnp.isfinite(camera.fy)), "PinholeCamera: `fy` must be finite and positive")
+        m = eqx.error_if(m, ~jnp.all(jnp.isfinite(intr)), "PinholeCamera: `cx`, `cy` must be finite")
+    else:
+        m = eqx.error_if(m, ~((camera.scale > 0.0) & jnp.isfinite(camera.scale)), "OrthographicCamera: `scale` must be finite and positive")
     dt = m.dtype
     rot, t = m[:3, :3], m[:3, 3]
     u = jnp.broadcast_to((jnp.arange(w, dtype=dt) + 0.5)[None, :], (h, w))
     v = jnp.broadcast_to((jnp.arange(h, dtype=dt) + 0.5)[:, None], (h, w))
     if isinstance(camera, PinholeCamera):
-        fx = eqx.error_if(camera.fx, ~(camera.fx > 0.0), "PinholeCamera: `fx` must be positive")
-        fy = eqx.error_if(camera.fy, ~(camera.fy > 0.0), "PinholeCamera: `fy` must be positive")
-        d_cam = jnp.stack([(u - camera.cx) / fx, (v - camera.cy) / fy, jnp.ones_like(u)], axis=-1)
+        d_cam = jnp.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, jnp.ones_like(u)], axis=-1)
         d = jnp.einsum("ij,hwj->hwi", rot, d_cam)
         d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
         o = jnp.broadcast_to(t[None, None, :], (h, w, 3))
     else:
-        s = eqx.error_if(camera.scale, ~(camera.scale > 0.0), "OrthographicCamera: `scale` must be positive")
+        s = camera.scale
         p_cam = jnp.stack([(u - 0.5 * w) * s, (v - 0.5 * h) * s, jnp.zeros_like(u)], axis=-1)
         o = jnp.einsum("ij,hwj->hwi", rot, p_cam) + t[None, None, :]
         axis = rot[:, 2] / jnp.linalg.norm(rot[:, 2])
@@ -212,7 +278,11 @@ def look_at(
     direction another world axis (the one least aligned with $z$) is used.
 
     **Arguments:** `eye`, `target`, `up`: `(..., 3)` (broadcast; traced,
-    differentiable). `up` defaults to world +z.
+    differentiable). `up` defaults to world +z; it is a direction and need
+    not be a unit vector (only its component orthogonal to the viewing
+    direction is used, normalized). Concrete NaN/inf in any of them, a zero
+    `up`, or `eye == target` is a `ValueError` naming the argument (traced
+    values: the resulting matrix is checked by the cameras and `camera_rays`).
 
     **Returns:** `(..., 4, 4)`.
     """
@@ -227,6 +297,10 @@ def look_at(
             batch = jnp.broadcast_shapes(batch, a.shape[:-1])
         except ValueError:
             raise ValueError(f"the batch shape of `{name}`, {a.shape[:-1]}, does not broadcast with {batch}") from None
+    for name, a in (("eye", eye), ("target", target), ("up", up)):
+        _require_finite(a, name)
+    if not is_traced(up) and bool(jnp.any(jnp.all(up == 0, axis=-1))):
+        raise ValueError("`look_at`: `up` is a zero vector")
     dt = _widest([eye, target, up])
     eye, target, up = (jnp.broadcast_to(a.astype(dt), batch + (3,)) for a in (eye, target, up))
     try:

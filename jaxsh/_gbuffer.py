@@ -11,7 +11,10 @@ valid view direction. Camera conventions: `jaxsh._camera`.
 
 `sphere_gbuffer` is analytic JAX (jitted, differentiable in the camera and
 the sphere). The G-buffer of a triangle mesh, `mesh_gbuffer`, is ray cast in
-NumPy / trimesh (`jaxsh._raycast`).
+NumPy / trimesh (`jaxsh._raycast`). `normal_map_gbuffer` builds one from a
+measured normal map (photometric stereo, structured light, light stages):
+normals and view directions only, no positions (`GBuffer.has_position` is
+False), hence no shadows.
 
 `visibility_weighted_irradiance` is the jitted consumer of the transfer
 vectors that `visibility_sh` (`jaxsh._raycast`) precomputes:
@@ -38,10 +41,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._camera import Camera, _camera_rays, _check_camera, _require_positive, _scalar, _widest
-from ._checks import as_float_array, coeff_layout
+from ._camera import Camera, _camera_rays, _check_camera, _require_finite, _require_positive, _scalar, _widest
+from ._checks import as_float_array, coeff_layout, is_traced
 
 
 def _dot(a, b):
@@ -63,6 +67,11 @@ class GBuffer(eqx.Module):
       ($\\omega_o$; minus the ray direction, defined for every pixel).
     - `depth`: `(H, W)` camera-frame $z$ of the hit point (0 where `mask` is
       False).
+    - `has_position`: static bool, True when `position` and `depth` hold the
+      surface (`sphere_gbuffer`, `mesh_gbuffer`). False for a G-buffer built
+      from a normal map (`normal_map_gbuffer`): the surface points are not
+      known, `position` and `depth` are then all zeros and must not be used
+      (no shadows or visibility can be computed from it).
 
     `gb.position[gb.mask]` etc. give the `(N, 3)` samples of the object
     (outside `jit`).
@@ -73,6 +82,7 @@ class GBuffer(eqx.Module):
     normal: Float[Array, "H W 3"]
     view: Float[Array, "H W 3"]
     depth: Float[Array, "H W"]
+    has_position: bool = eqx.field(static=True, default=True)
 
 
 def sphere_gbuffer(
@@ -96,7 +106,9 @@ def sphere_gbuffer(
     **Arguments:**
 
     - `camera`: `PinholeCamera` or `OrthographicCamera`.
-    - `center`: `(3,)`; `radius`: scalar > 0 (traced).
+    - `center`: `(3,)`, finite; `radius`: scalar, finite and > 0 (traced).
+      Invalid values are a `ValueError` naming the argument (traced values:
+      a run-time error).
 
     **Returns:** a `GBuffer` of `(height, width)` images.
     """
@@ -104,6 +116,7 @@ def sphere_gbuffer(
     center = as_float_array(center, "center")
     if center.shape != (3,):
         raise ValueError(f"`center` must have shape (3,), got {tuple(center.shape)}")
+    _require_finite(center, "center")
     radius = _scalar(radius, "radius")
     _require_positive(radius, "radius")
     dt = _widest([camera.cam_to_world, center, radius])
@@ -114,7 +127,8 @@ def sphere_gbuffer(
 
 @eqx.filter_jit
 def _sphere_gbuffer(camera, center, radius):
-    radius = eqx.error_if(radius, ~(radius > 0.0), "sphere_gbuffer: `radius` must be positive")
+    radius = eqx.error_if(radius, ~((radius > 0.0) & jnp.isfinite(radius)), "sphere_gbuffer: `radius` must be finite and positive")
+    center = eqx.error_if(center, ~jnp.all(jnp.isfinite(center)), "sphere_gbuffer: `center` must be finite")
     o, d = _camera_rays(camera)
     f = o - center[None, None, :]
     b = _dot(f, d)
@@ -144,6 +158,96 @@ def _sphere_gbuffer(camera, center, radius):
     zaxis = zaxis / jnp.linalg.norm(zaxis)
     depth = jnp.where(mask, _dot(p - eye[None, None, :], zaxis[None, None, :]), 0.0)
     return GBuffer(mask=mask, position=position, normal=normal, view=-d, depth=depth)
+
+
+# Normals whose length is within this of 1 are accepted (and renormalized) by `normal_map_gbuffer`.
+_NORMAL_TOL = 1e-3
+
+
+def normal_map_gbuffer(camera: Camera, normals: Float[Array, "H W 3"], mask: Bool[Array, "H W"] | None = None) -> GBuffer:
+    """G-buffer of a measured normal map: normals and view directions, no positions.
+
+    For captures whose geometry is a normal map in the camera's pixel grid
+    (photometric stereo, structured light, light stages) rather than a mesh.
+    A pixel is on the object where its normal is non-zero (and `mask`, if
+    given, is True); elsewhere the normal is the zero vector, as in the other
+    G-buffers. The view direction of every pixel is computed from the camera
+    (`camera_rays`): $\\omega_o = -d$, from the surface towards the camera —
+    per pixel for a pinhole camera, constant (minus the optical axis) for an
+    orthographic one. Within the tolerance below this is the view direction
+    of the true surface point, since for a pinhole camera it depends only on
+    the pixel, not on the unknown depth.
+
+    **No positions and no shadows.** The surface points are not known, so
+    the result has `has_position=False` and `position`, `depth` all zeros
+    (never fake points): visibility, cast shadows and the transfer vectors of
+    `directional_visibility` / `visibility_sh` / `reflected_visibility` need
+    a mesh (`mesh_gbuffer`). Rendering and fitting from this G-buffer assume
+    every pixel sees the whole upper hemisphere of its normal (R&H eq. 21
+    without the visibility of sec. 6.4).
+
+    **Arguments:**
+
+    - `camera`: `PinholeCamera` or `OrthographicCamera`.
+    - `normals`: `(camera.height, camera.width, 3)` world-frame normals, in
+      the camera's pixel grid (row $i$, column $j$ as in `camera_rays`).
+      Each must be finite and either of norm 1 within 1e-3 (it is
+      renormalized) or exactly zero (off the object).
+    - `mask`: optional `(height, width)` bool, an extra restriction of the
+      object (pixels where it is False are off the object even with a
+      non-zero normal; their normal is set to zero).
+
+    Invalid input is a `ValueError` naming the argument (shape, NaN/inf,
+    norms); traced normals are checked at run time (`equinox.error_if`).
+    Jitted; differentiable in `normals` (on the mask) and the camera.
+
+    **Returns:** a `GBuffer` with `has_position=False`, in the widest float
+    dtype of the camera and `normals`.
+    """
+    camera = _check_camera(camera)
+    h, w = camera.height, camera.width
+    n = as_float_array(normals, "normals")
+    if n.shape != (h, w, 3):
+        raise ValueError(
+            f"`normals` must have shape (height, width, 3) = ({h}, {w}, 3) to match the camera, got {tuple(n.shape)}"
+        )
+    if mask is not None:
+        mask = jnp.asarray(mask)
+        if mask.dtype != jnp.bool_:
+            raise ValueError(f"`mask` must be a bool array, got dtype {mask.dtype}")
+        if mask.shape != (h, w):
+            raise ValueError(f"`mask` must have shape (height, width) = ({h}, {w}), got {tuple(mask.shape)}")
+    if not is_traced(n):
+        _require_finite(n, "normals")
+        norm = np.linalg.norm(np.asarray(n, dtype=np.float64), axis=-1)
+        bad = (norm != 0) & (np.abs(norm - 1) > _NORMAL_TOL)
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            raise ValueError(
+                f"`normals` must be unit vectors (norm 1 within {_NORMAL_TOL:g}) or exactly zero (off the object); "
+                f"{int(bad.sum())} pixels are not, e.g. pixel ({i}, {j}) has norm {norm[i, j]:.6g}"
+            )
+    dt = _widest([camera.cam_to_world, n])
+    if dt != camera.cam_to_world.dtype:
+        camera = jax.tree_util.tree_map(lambda a: a.astype(dt), camera)
+    return _normal_map_gbuffer(camera, n.astype(dt), mask)
+
+
+@eqx.filter_jit
+def _normal_map_gbuffer(camera, n, mask):
+    raw2 = jnp.sum(n * n, axis=-1)
+    raw = jnp.sqrt(jnp.where(raw2 > 0, raw2, 1.0))
+    bad = ~jnp.all(jnp.isfinite(n)) | jnp.any((raw2 > 0) & (jnp.abs(raw - 1) > _NORMAL_TOL))
+    n = eqx.error_if(n, bad, "normal_map_gbuffer: `normals` must be finite, unit (within 1e-3) or exactly zero")
+    norm2 = jnp.sum(n * n, axis=-1)  # from the checked array, so that the mask carries the check too
+    norm = jnp.sqrt(jnp.where(norm2 > 0, norm2, 1.0))  # double-where: finite gradients at the zero vectors
+    on = norm2 > 0
+    if mask is not None:
+        on = on & mask
+    normal = jnp.where(on[..., None], n / norm[..., None], 0.0)
+    _, d = _camera_rays(camera)
+    zeros = jnp.zeros_like(norm)
+    return GBuffer(mask=on, position=jnp.zeros_like(normal), normal=normal, view=-d, depth=zeros, has_position=False)
 
 
 # --------------------------------------------------------------------------- shading with precomputed transfer (R&H 2001 sec. 6.4)

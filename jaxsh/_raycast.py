@@ -100,6 +100,8 @@ def _check_mesh(mesh):
         raise ValueError(f"`mesh` must be a trimesh.Trimesh, got {type(mesh).__name__}")
     if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise ValueError("`mesh` is empty (it has no faces)")
+    if not np.all(np.isfinite(np.asarray(mesh.vertices, dtype=np.float64))):
+        raise ValueError("`mesh` has non-finite vertices (NaN or inf in `mesh.vertices`)")
     return mesh
 
 
@@ -231,7 +233,7 @@ def mesh_gbuffer(camera: Camera, mesh, smooth: bool = True, engine: str = "auto"
     **Arguments:**
 
     - `camera`: `PinholeCamera` or `OrthographicCamera`.
-    - `mesh`: a non-empty `trimesh.Trimesh`.
+    - `mesh`: a non-empty `trimesh.Trimesh` with finite vertices (else `ValueError`).
     - `smooth`: interpolated vertex normals (True) or face normals (False).
     - `engine`: `"auto"`, `"embree"`, `"triangle"` or `"numpy"`.
 

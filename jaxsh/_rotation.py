@@ -228,7 +228,8 @@ def rotate_sh(
       ambiguous one such as `(9, 1)`; `True`/`False` force it.
 
     **Returns:** rotated coefficients, the shape of `coeffs` broadcast with
-    the batch shape of `R`.
+    the batch shape of `R`. NaN in, NaN out (a pure array kernel; `R` is not
+    checked for orthogonality, see `wigner_D`).
     """
     coeffs = as_float_array(coeffs, "coeffs")
     R = _check_rotation(R)

@@ -390,6 +390,100 @@ def test_triangle_engine_needs_rtree_or_agrees():
     np.testing.assert_allclose(gt.position, gn.position, atol=1e-10)
 
 
+# ---------------------------------------------------------------- G-buffer from a normal map (issue 11)
+
+
+def _analytic_sphere_normal_map(o, d, c, r):
+    """Normals of the first ray-sphere hit, by the textbook quadratic in NumPy (independent of sphere_gbuffer)."""
+    f = o - c
+    b = np.sum(f * d, axis=-1)
+    disc = b * b - (np.sum(f * f, axis=-1) - r * r)
+    hit = disc > 1e-9  # strictly inside the silhouette: no pixel on the tangent
+    t = -b - np.sqrt(np.where(hit, disc, 0.0))
+    p = o + t[..., None] * d
+    return np.where(hit[..., None], (p - c) / r, 0.0), hit, p
+
+
+def test_normal_map_gbuffer_orthographic_sphere():
+    """Analytic sphere normal map through an orthographic camera: the same normals/views as sphere_gbuffer."""
+    n = 24
+    cam = jaxsh.OrthographicCamera(0.1, n, n, pose(np.diag([1.0, -1.0, -1.0]), [0.1, -0.05, 5.0]))
+    c, r = np.array([0.2, 0.1, -0.3]), 0.9
+    # orthographic pixel (i, j): camera-frame point ((j+1/2-W/2)s, (i+1/2-H/2)s), looking along camera +z = world -z
+    jj, ii = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
+    o = np.stack([(jj - n / 2) * 0.1 + 0.1, -(ii - n / 2) * 0.1 - 0.05, np.full_like(jj, 5.0)], axis=-1)
+    d = np.broadcast_to([0.0, 0.0, -1.0], o.shape)
+    normals, hit, _ = _analytic_sphere_normal_map(o, d, c, r)
+    gb = jaxsh.normal_map_gbuffer(cam, normals)
+    ref = jaxsh.sphere_gbuffer(cam, c, r)
+    assert not gb.has_position and ref.has_position
+    np.testing.assert_array_equal(np.asarray(gb.mask), hit)
+    assert np.array_equal(np.asarray(ref.mask)[hit], hit[hit])
+    np.testing.assert_allclose(np.asarray(gb.normal)[hit], np.asarray(ref.normal)[hit], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(gb.view), np.asarray(ref.view), atol=1e-15)
+    # orthographic: one view direction, minus the optical axis (world +z here)
+    np.testing.assert_allclose(np.asarray(gb.view), np.broadcast_to([0.0, 0.0, 1.0], (n, n, 3)), atol=1e-15)
+    # no fake positions: zeros, documented; zero normals off the object
+    assert np.all(np.asarray(gb.position) == 0) and np.all(np.asarray(gb.depth) == 0)
+    assert np.all(np.asarray(gb.normal)[~hit] == 0)
+
+
+def test_normal_map_gbuffer_pinhole_sphere():
+    """Pinhole: view directions per pixel, equal to sphere_gbuffer's and to normalize(eye - p) at the true points."""
+    n = 20
+    eye = np.array([0.3, -3.5, 1.2])
+    m = np.asarray(jaxsh.look_at(eye, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]))
+    cam = jaxsh.PinholeCamera(30.0, 28.0, 9.7, 10.4, n, n, m)
+    c, r = np.zeros(3), 0.8
+    # pinhole rays from the OpenCV formula (independent of camera_rays)
+    jj, ii = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
+    d_cam = np.stack([(jj - 9.7) / 30.0, (ii - 10.4) / 28.0, np.ones_like(jj)], axis=-1)
+    d = unit(d_cam @ m[:3, :3].T)
+    o = np.broadcast_to(eye, d.shape)
+    normals, hit, p = _analytic_sphere_normal_map(o, d, c, r)
+    assert hit.sum() > 50
+    gb = jaxsh.normal_map_gbuffer(cam, normals)
+    ref = jaxsh.sphere_gbuffer(cam, c, r)
+    np.testing.assert_array_equal(np.asarray(gb.mask), hit)
+    np.testing.assert_allclose(np.asarray(gb.normal)[hit], np.asarray(ref.normal)[hit], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(gb.view)[hit], np.asarray(ref.view)[hit], atol=1e-14)
+    np.testing.assert_allclose(np.asarray(gb.view)[hit], unit(eye - p[hit]), atol=1e-12)
+    v = np.asarray(gb.view)[hit]
+    assert np.max(np.linalg.norm(v - v[0], axis=-1)) > 0.1  # the view direction varies across the object
+
+
+def test_normal_map_gbuffer_from_mesh_and_mask():
+    """mesh_gbuffer's normal output fed back gives the same mask, normals and views; `mask` restricts it."""
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
+    mesh.apply_translation([0.1, 0.0, 0.2])
+    cam = jaxsh.PinholeCamera(22.0, 22.0, 8.0, 8.0, 16, 16, np.asarray(jaxsh.look_at([2.5, -2.0, 1.5], [0.0, 0.0, 0.0])))
+    gm = jaxsh.mesh_gbuffer(cam, mesh, engine="numpy")
+    gn = jaxsh.normal_map_gbuffer(cam, gm.normal)
+    np.testing.assert_array_equal(np.asarray(gn.mask), np.asarray(gm.mask))
+    np.testing.assert_allclose(np.asarray(gn.normal), np.asarray(gm.normal), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(gn.view), np.asarray(gm.view), atol=1e-15)
+    extra = np.zeros((16, 16), bool)
+    extra[:, :8] = True
+    gx = jaxsh.normal_map_gbuffer(cam, gm.normal, mask=jnp.asarray(extra))
+    np.testing.assert_array_equal(np.asarray(gx.mask), np.asarray(gm.mask) & extra)
+    assert np.all(np.asarray(gx.normal)[~extra] == 0)
+    # slightly non-unit normals (within 1e-3) are renormalized
+    gs = jaxsh.normal_map_gbuffer(cam, np.asarray(gm.normal) * (1 + 5e-4))
+    np.testing.assert_allclose(np.asarray(gs.normal), np.asarray(gm.normal), atol=1e-12)
+
+
+def test_normal_map_gbuffer_jit_grad_float32():
+    cam = jaxsh.OrthographicCamera(0.1, 8, 8, np.eye(4))
+    nrm = np.zeros((8, 8, 3))
+    nrm[2:6, 2:6] = unit([0.2, -0.1, -1.0])
+    g = jax.grad(lambda x: jnp.sum(jaxsh.normal_map_gbuffer(cam, x).normal[..., 0]))(jnp.asarray(nrm))
+    assert np.isfinite(np.asarray(g)).all()  # finite at the zero vectors off the object
+    assert np.all(np.asarray(g)[~(np.linalg.norm(nrm, axis=-1) > 0)] == 0)
+    cam32 = jaxsh.OrthographicCamera(np.float32(0.1), 8, 8, np.eye(4, dtype=np.float32))
+    g32 = jax.jit(jaxsh.normal_map_gbuffer)(cam32, jnp.asarray(nrm, jnp.float32))
+    assert g32.normal.dtype == jnp.float32 and g32.view.dtype == jnp.float32 and int(g32.mask.sum()) == 16
+
+
 # ---------------------------------------------------------------- bad input
 
 
