@@ -1,6 +1,6 @@
 """jaxsh: signal-processing inverse rendering in JAX (pure forward maths).
 
-Conventions are in DESIGN.md and the README; every public function states
+Conventions are in docs/conventions.md and the README; every public function states
 the ones it uses.
 """
 

@@ -1,6 +1,6 @@
 """Cameras: pinhole and orthographic models, `look_at`, and the rays of a view (jitted JAX).
 
-**Conventions** (DESIGN.md, "Capture manifest") follow OpenCV: +x right,
+**Conventions** (docs/conventions.md, "Cameras"; docs/manifest.md) follow OpenCV: +x right,
 +y down, +z forward; `cam_to_world` is the 4×4 matrix mapping camera to
 world coordinates, $x_w = R\\,x_c + t$. Pixel $(i, j)$ = (row, column) has
 its centre at image coordinates $(u, v) = (j + \\tfrac12, i + \\tfrac12)$.

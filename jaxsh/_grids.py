@@ -1,6 +1,6 @@
 """Sampling grids on the sphere, with quadrature weights.
 
-Conventions (DESIGN.md): polar angle θ from +z, azimuth φ from +x towards +y.
+Conventions (docs/conventions.md): polar angle θ from +z, azimuth φ from +x towards +y.
 
 | grid | rows (θ) | columns (φ) | exact for |
 |---|---|---|---|

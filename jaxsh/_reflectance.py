@@ -1,6 +1,6 @@
 """Angular BRDF models, Fresnel terms and half/difference coordinates.
 
-Conventions (DESIGN.md): all directions are unit 3-vectors pointing *away*
+Conventions (docs/conventions.md): all directions are unit 3-vectors pointing *away*
 from the surface — `wi` towards the light ($\\omega_i$, "L"), `wo` towards the
 viewer ($\\omega_o$) — and `n` is the unit surface normal. Every model returns
 the BRDF value $\\rho(\\omega_i, \\omega_o)$ itself (not multiplied by the
@@ -740,7 +740,7 @@ def torrance_sparrow(
     mu: Float[Array, "*batch"] | None,
     sigma: Float[Array, "*batch"],
 ) -> Float[Array, "*batch"]:
-    """The simplified Torrance–Sparrow model of R&H 2001 sec. 5.2 (DESIGN.md).
+    """The simplified Torrance–Sparrow model of R&H 2001 sec. 5.2 (docs/conventions.md, "BRDFs").
 
     $$\\rho = K_d + K_s\\frac{F\\,S}{4\\cos\\theta_i\\cos\\theta_o},\\quad
       S = \\frac{1}{\\pi\\sigma^2}\\exp\\left[-(\\theta_h/\\sigma)^2\\right],\\quad

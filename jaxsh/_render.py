@@ -18,7 +18,7 @@ Deviation from the letter of eq. 21 (default `exact_fast_diffuse=True`): the
 fast sources' diffuse contribution is computed exactly in angular space,
 $K_d\\sum_j L_j V_j\\max(n\\cdot\\omega_j, 0)$, and the 9-term irradiance is
 used for the slow lighting only. A compact source is cheap to treat exactly,
-and the 9-term clamped cosine is its worst case (PEERS.md measured 2.0 %
+and the 9-term clamped cosine is its worst case (docs/performance.md: measured 2.0 %
 vs 0.4 % RMS for a probe plus a sun). `exact_fast_diffuse=False` gives the
 paper's form.
 
@@ -243,7 +243,7 @@ def render_reference(
     - `lighting`: a `jaxsh.Lighting` with fast sources (exact) and/or disks
       (quadrature), and no `slow_sh` (SH lighting is not integrated here;
       pass it as `envmap`). Optional when `envmap` is given.
-    - `envmap`: `(H, W, C)` lat-long map (world frame, DESIGN.md layout).
+    - `envmap`: `(H, W, C)` lat-long map (world frame, docs/conventions.md layout).
     - For concave objects pass the occluding `mesh` (trimesh) and the surface
       `points` `(..., 3)`: every quadrature direction of every pixel is then
       ray-cast (`directional_visibility`; NumPy/embree, N × M rays) and the

@@ -353,7 +353,7 @@ def _real_sh_flat(unit, lmax: int):
 def real_sh(dirs: Float[Array, "*batch 3"], lmax: int) -> Float[Array, "*batch n_coeffs"]:
     """Real orthonormal spherical harmonics $Y_{lm}(\\omega)$ for $l \\le l_{max}$.
 
-    Convention (DESIGN.md): orthonormal on the sphere, no sign flips,
+    Convention (docs/conventions.md): orthonormal on the sphere, no sign flips,
     $Y_{1,-1} = c\\,y$, $Y_{1,0} = c\\,z$, $Y_{1,1} = c\\,x$ with
     $c = \\sqrt{3/4\\pi}$; in general $Y_{l,m} = \\sqrt2(-1)^m\\mathrm{Re}\\,Y_l^m$ and
     $Y_{l,-m} = \\sqrt2(-1)^m\\mathrm{Im}\\,Y_l^m$ for $m > 0$, with $Y_l^m$ the

@@ -1,6 +1,6 @@
 """Spherical-harmonic analysis and synthesis on lat-long grids; scattered fits.
 
-Real SH in the flat layout of DESIGN.md. A lat-long image is `(H, W)` (one
+Real SH in the flat layout of docs/conventions.md. A lat-long image is `(H, W)` (one
 channel) or `(H, W, C)`; its coefficients are `(n_coeffs,)` or
 `(n_coeffs, C)`.
 
@@ -105,7 +105,7 @@ def project_latlong(
     **Arguments:**
 
     - `image`: `(H, W)` or `(H, W, C)`, row `i` ↔ θ = π(i+½)/H from +z, column
-      `j` ↔ φ = 2π(j+½)/W from +x (DESIGN.md). Any float dtype; the result
+      `j` ↔ φ = 2π(j+½)/W from +x (docs/conventions.md). Any float dtype; the result
       has the same dtype.
     - `lmax`: band limit (static int).
     - `allow_aliasing`: the grid resolves band limits $l_{max} < H/2$ with

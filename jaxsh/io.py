@@ -17,7 +17,7 @@ temporary file in the same folder, then renamed over the target, so an
 interrupted run never leaves a half-written file.
 
 Environment maps are returned as lat-long images in the library's frame
-(DESIGN.md): +z up, row `i` ↔ θ = π(i+½)/H from +z, column `j` ↔
+(docs/conventions.md): +z up, row `i` ↔ θ = π(i+½)/H from +z, column `j` ↔
 φ = 2π(j+½)/W from +x towards +y. Files whose up axis is +y (most HDR maps,
 e.g. the USC light probes) are converted by an explicit rotation, never by
 guessing: with `up="+y"`, file axes $(x, y, z)$ map to library axes

@@ -1,7 +1,7 @@
 """solvers: inverse rendering on top of jaxsh (R&H 2001 sec. 6; Zickler et al. 2006).
 
 Results are equinox Modules with the estimate, a `Status`, iterations, RMS
-residual and standard errors; see DESIGN.md.
+residual and standard errors; see docs/results.md.
 """
 
 from ._results import Solution as Solution, SolveError as SolveError, Status as Status, status_name as status_name

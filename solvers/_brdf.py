@@ -46,8 +46,8 @@ class BRDFResult(Solution):
       where the data do not determine a parameter). They are statistical:
       they measure how well the pixels determine a parameter under the
       practical model (noise, conditioning), not the model's own error
-      against real reflection, which can be larger (see the closing notes:
-      with an area source only, sigma was off by ~9 standard errors).
+      against real reflection, which can be larger (measured: with an area source only,
+      sigma was off by ~9 standard errors; docs/results.md).
     - `covariance`: `(p, p)` covariance of `(kd..., ks..., mu, sigma)`
       (homogeneous fits; the `(mu, sigma)` block for textured fits).
     - `status`: `Status`: the worst of non-finite values, a singular inner

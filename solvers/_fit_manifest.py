@@ -5,7 +5,7 @@
   known roughness deconvolved so the re-renders use the same model);
 * both unknown → `factorize` (sec. 6.3; $K_d + K_s = 1$ per channel).
 
-Writes `result.json` (DESIGN.md format), the lighting as a lat-long EXR + PNG,
+Writes `result.json` (docs/results.md), the lighting as a lat-long EXR + PNG,
 and re-renders `view_###.exr/.png` of every view with the recovered values.
 Meshes get the visibility terms of sec. 6.4.
 

@@ -16,7 +16,7 @@ each with a `render` method that predicts radiance under new lighting and
 views. The image-sample conventions are those of `jaxsh`: directions point
 away from the surface (`light` = $\\omega_i$, `view` = $\\omega_o$), radiance
 $I = \\rho\\,E\\cos\\theta_i$ for a directional source of irradiance $E$ at
-normal incidence (DESIGN.md, "capture manifest").
+normal incidence (docs/conventions.md, "Lighting").
 
 ??? cite "References"
     Zickler, T., Ramamoorthi, R., Enrique, S., Belhumeur, P. N. (2006).
@@ -323,7 +323,7 @@ def fit_sharing(
     the whole loop is one `jax.lax.while_loop` compiled once. Each round
     refactors the padded matrix ($\\frac23 K^3$ flops) rather than updating
     an inverse: an incremental inverse update was measured to diverge
-    (PEERS.md), and at $N \\gg K$ the residual evaluation ($O(NK)$) costs
+    (docs/performance.md), and at $N \\gg K$ the residual evaluation ($O(NK)$) costs
     about as much as the factorization.
 
     **Precision.** Fit in float64: the saddle-point matrices have condition
