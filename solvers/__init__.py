@@ -13,7 +13,7 @@ from ._data import (
     practical_terms_for as practical_terms_for,
     predict as predict,
 )
-from ._brdf import BRDFResult as BRDFResult, fit_brdf as fit_brdf
+from ._brdf import MU_BOUNDS as MU_BOUNDS, SIGMA_BOUNDS as SIGMA_BOUNDS, BRDFResult as BRDFResult, fit_brdf as fit_brdf
 from ._brdf_sh import BRDFSHResult as BRDFSHResult, fit_brdf_sh as fit_brdf_sh, predict_brdf_sh as predict_brdf_sh
 from .synthetic import (
     SyntheticCapture as SyntheticCapture,

@@ -23,6 +23,8 @@ precomputed `jaxsh.PracticalTerms`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -30,7 +32,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
-from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for
+from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._normal_equations import covariance_from_jacobian, inverse_sym2_diag, solve_grouped_shared, solve_sym2
 from ._results import Solution, Status, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
@@ -57,7 +59,11 @@ class BRDFResult(Solution):
     - `rms`: weighted RMS residual; `rel_rms`: `rms` / RMS of the data (never NaN).
     - `texel_count`: `(T,)` samples per texel (textured fits), else `None`.
     - `stats`: `num_steps_simplex`, `num_steps_lm` (0 without refinement),
-      `grid_points` (starting grid size), `n_obs` (weighted samples × channels).
+      `grid_points` (starting grid size), `n_obs` (weighted samples × channels),
+      `at_bound`: `{"mu": bool, "sigma": bool}` the parameter stopped at its
+      bound of the search box (`MU_BOUNDS`, `SIGMA_BOUNDS`; the data do not
+      determine it: its standard error is `inf`), `undetermined`: the same
+      dict, also True where the one-sigma error exceeds $\\mu - 1$ (resp. $\\sigma$).
     """
 
     brdf: TorranceSparrow
@@ -122,6 +128,23 @@ def _to_natural(u, fresnel: bool):
     return None, jnp.exp(u[0])
 
 
+# Box of the simplex / LM in the coordinates u = (log(mu - 1), log sigma): mu in [1.001, 10], sigma in
+# [1e-3, 1.5] rad. A parameter the data do not determine (directional lights and near-normal views leave
+# F(mu) flat) would otherwise run off towards mu -> 1 or mu -> inf until max_steps; it stops at the box
+# instead, flagged in `stats["at_bound"]` with an infinite standard error.
+MU_BOUNDS = (1.0 + 1e-3, 10.0)
+SIGMA_BOUNDS = (1e-3, 1.5)
+_AT_BOUND_TOL = 1e-3  # in log units
+
+
+def _u_bounds(fresnel: bool, dt):
+    lo = [np.log(MU_BOUNDS[0] - 1.0), np.log(SIGMA_BOUNDS[0])]
+    hi = [np.log(MU_BOUNDS[1] - 1.0), np.log(SIGMA_BOUNDS[1])]
+    if not fresnel:
+        lo, hi = lo[1:], hi[1:]
+    return jnp.asarray(lo, dt), jnp.asarray(hi, dt)
+
+
 def _to_u(mu, sigma, fresnel: bool, dt):
     s = jnp.log(jnp.asarray(sigma, dt))
     if fresnel:
@@ -135,7 +158,7 @@ def _to_u(mu, sigma, fresnel: bool, dt):
 @blas_single_thread
 def fit_brdf(
     obs: Observations,
-    lighting: Lighting,
+    lighting: Lighting | Sequence[Lighting],
     *,
     fresnel: bool = True,
     textured: str | None = None,
@@ -153,7 +176,9 @@ def fit_brdf(
     - `obs`: `Observations` (any number of views; visibility terms are used
       when present, R&H sec. 6.4).
     - `lighting`: the known `Lighting` (slow SH to $l \\gtrsim 3/\\sigma$ plus
-      fast sources).
+      fast sources), or a sequence of one `Lighting` per view of `obs`
+      (`obs.view_index`; e.g. one directional light per image, photometric
+      stereo). Memory stays $O(N)$ (`practical_terms_for`).
     - `fresnel`: fit $\\mu$ (True) or use $F = 1$ (False; `brdf.mu` is None).
     - `textured`: `None` (homogeneous), `"kd"` ($K_d$ per texel, one $K_s$)
       or `"kd_ks"` (both per texel); needs `obs.texel`.
@@ -165,12 +190,16 @@ def fit_brdf(
       (default False: check `result.status`).
 
     **Returns:** `BRDFResult`. Non-convergence and singular inner systems are
-    reported in `status`.
+    reported in `status`. $\\mu$ and $\\sigma$ are searched in the box
+    `MU_BOUNDS` = [1.001, 10], `SIGMA_BOUNDS` = [1e-3, 1.5] rad: when the data
+    do not determine one (e.g. only directional lights and near-normal views:
+    $F(\\mu, \\theta_o) \\approx 1$ for every $\\mu$), the fit converges with it at
+    the bound, `stats["at_bound"][name]` True and an infinite standard error,
+    instead of running to `max_steps_reached`.
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
-    if not isinstance(lighting, Lighting):
-        raise ValueError(f"`lighting` must be a solvers.Lighting, got {type(lighting).__name__}")
+    view_lightings(obs, lighting)  # one Lighting, or one per view: checked here, ValueError naming `lighting`
     if textured not in (None, "kd", "kd_ks"):
         raise ValueError(f"`textured` must be None, 'kd' or 'kd_ks', got {textured!r}")
     if textured is not None and (obs.texel is None or obs.n_texels < 1):
@@ -212,15 +241,24 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     # state: a float32 problem with x64 enabled would not trace); the model runs in the data's dtype.
     pdt = jnp.asarray(0.0).dtype
 
+    lo, hi = _u_bounds(fresnel, dt)
+    # outside the box: the value at the box plus a quadratic wall scaled by the data energy
+    wall = jnp.maximum(jnp.sum(w[:, None] * b * b), jnp.finfo(dt).tiny)
+
     def objective(u, _):
-        r, _aux = profiled(u.astype(dt))
-        return jnp.sum(r * r).astype(pdt)
+        u = u.astype(dt)
+        uc = jnp.clip(u, lo, hi)
+        r, _aux = profiled(uc)
+        return (jnp.sum(r * r) + wall * jnp.sum((u - uc) ** 2)).astype(pdt)
 
     # Start: best grid point (vmapped), then the simplex of R&H sec. 6.1.
     grid_vals = jax.vmap(lambda u: objective(u, None))(u_grid.astype(pdt))
     u0 = u_grid.astype(pdt)[jnp.argmin(jnp.where(jnp.isfinite(grid_vals), grid_vals, jnp.inf))]
     nm = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), u0, max_steps=max_steps, throw=False)
-    u = nm.value.astype(dt)
+    u = jnp.clip(nm.value.astype(dt), lo, hi)
+    # a parameter at the box after the simplex is held there by the joint refinement
+    at_lo, at_hi = u <= lo + _AT_BOUND_TOL, u >= hi - _AT_BOUND_TOL
+    pinned = at_lo | at_hi
     steps_nm = nm.stats["num_steps"]
     steps_lm = jnp.zeros_like(steps_nm)
     st_nm = status_from_optimistix(nm.result)
@@ -231,8 +269,11 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
 
         def resid(p, _):
             p = p.astype(dt)
-            mu, sigma = _to_natural(p[2 * c :], fresnel)
-            return (sw * (_model(terms, p[:c], p[c : 2 * c], mu, sigma, texel) - b)).reshape(-1).astype(pdt)
+            uu = jnp.where(pinned, u, p[2 * c :])
+            uc = jnp.clip(uu, lo, hi)
+            mu, sigma = _to_natural(uc, fresnel)
+            r = (sw * (_model(terms, p[:c], p[c : 2 * c], mu, sigma, texel) - b)).reshape(-1)
+            return jnp.concatenate([r, jnp.sqrt(wall) * (uu - uc)]).astype(pdt)
 
         p0 = jnp.concatenate([kd, ks, u]).astype(pdt)
         lm = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0, max_steps=max_steps,
@@ -240,12 +281,15 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         p1 = lm.value
         better = jnp.sum(resid(p1, None) ** 2) <= jnp.sum(resid(p0, None) ** 2)
         p = jnp.where(better & jnp.all(jnp.isfinite(p1)), p1, p0).astype(dt)
-        kd, ks, u = p[:c], p[c : 2 * c], p[2 * c :]
+        kd, ks, u = p[:c], p[c : 2 * c], jnp.clip(jnp.where(pinned, u, p[2 * c :]), lo, hi)
         steps_lm = lm.stats["num_steps"]
         st_lm = status_from_optimistix(lm.result)
     mu, sigma = _to_natural(u, fresnel)
     r = sw * (_model(terms, kd, ks, mu, sigma, texel) - b)
     rss = jnp.sum(r * r)
+    at_bound = (u <= lo + _AT_BOUND_TOL) | (u >= hi - _AT_BOUND_TOL)
+    bound_mu = at_bound[0] if fresnel else jnp.asarray(False)
+    bound_sigma = at_bound[-1]
 
     # Standard errors from the Jacobian in natural parameters.
     def nat_params(th):
@@ -262,6 +306,8 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         J = jax.jacfwd(resid_nat)(th)
         if not fresnel:
             J = J.at[:, 2 * c].set(0.0)
+        # a parameter held at its bound is not estimated: zero column -> infinite standard error
+        J = J.at[:, 2 * c].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 2 * c + 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
         cov, se = covariance_from_jacobian(J, rss, nobs, J.shape[1] - (0 if fresnel else 1))
         std = TorranceSparrow(se[:c], se[c : 2 * c], se[2 * c] if fresnel else None, se[2 * c + 1])
         counts = None
@@ -278,6 +324,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         J = jax.jacfwd(resid_prof)(th2)
         if not fresnel:
             J = J.at[:, 0].set(0.0)
+        J = J.at[:, 0].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
         n_par = kd.size + (ks.shape[-1] if textured == "kd" else ks.size) + (2 if fresnel else 1)
         cov, se2 = covariance_from_jacobian(J, rss, nobs, n_par)
         # Texel K_d (and K_s) errors, conditional on mu, sigma: diagonal of the per-texel 2x2 inverse.
@@ -311,7 +358,13 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     )
     rms, rel = rms_pair(rss, data_ss, nobs)
     brdf = TorranceSparrow(kd, ks, mu, sigma)
+    at_bound_d = {"mu": bound_mu, "sigma": bound_sigma}
+    # undetermined: at the box, or a one-sigma error larger than the distance to the limit (mu - 1, sigma)
+    undetermined = {
+        "mu": bound_mu | (~(std.mu < mu - 1.0) if fresnel else jnp.asarray(False)),
+        "sigma": bound_sigma | ~(std.sigma < sigma),
+    }
     stats = {"num_steps_simplex": steps_nm, "num_steps_lm": steps_lm, "grid_points": jnp.asarray(u_grid.shape[0]),
-             "n_obs": nobs}
+             "n_obs": nobs, "at_bound": at_bound_d, "undetermined": undetermined}
     return BRDFResult(brdf=brdf, std_errors=std, covariance=cov, status=status, iterations=steps_nm + steps_lm, rms=rms,
                       rel_rms=rel, texel_count=counts, stats=stats)

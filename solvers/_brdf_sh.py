@@ -25,7 +25,12 @@ from jaxtyping import Array, Float, Int
 
 import jaxsh
 
-from ._data import Observations
+from ._data import Lighting, Observations, view_lightings
+
+
+def _is_number_list(x) -> bool:
+    """A nested list of numbers (an SH array given as lists), not a sequence of `Lighting`."""
+    return isinstance(x, (list, tuple)) and len(x) > 0 and not isinstance(x[0], Lighting)
 from ._results import Solution, Status, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
@@ -70,12 +75,14 @@ def _frame_angles(n, v):
     return alpha, beta, wo
 
 
-def brdf_sh_design(normals, views, L_complex, lmax: int):
-    """Design rows d B / d rho[l, p, q] for each pixel: `(N, lmax+1, lmax+1, lmax+1)` (eqs. 9, 10)."""
+def brdf_sh_design(normals, views, L_complex, lmax: int, view_index=None):
+    """Design rows d B / d rho[l, p, q] for each pixel: `(N, lmax+1, lmax+1, lmax+1)` (eqs. 9, 10).
+
+    `L_complex` `(n,)` is one lighting for all pixels, or `(K, n)` one per view with `view_index` `(N,)`.
+    """
     alpha, beta, wo = _frame_angles(normals, views)
     dt = normals.dtype
-
-    def one(a, b, w):
+    def one(a, b, w, L_complex=L_complex):
         basis = jaxsh.light_field_basis(a, b, w, lmax)
 
         def bval(rho):
@@ -83,13 +90,15 @@ def brdf_sh_design(normals, views, L_complex, lmax: int):
 
         return jax.grad(bval)(jnp.zeros((lmax + 1,) * 3, dt))
 
+    if view_index is not None:
+        return jax.vmap(lambda a, b, w, k: one(a, b, w, L_complex[k]))(alpha, beta, wo, view_index)
     return jax.vmap(one)(alpha, beta, wo)
 
 
 @blas_single_thread
 def fit_brdf_sh(
     obs: Observations,
-    lighting_sh: Float[Array, "n_coeffs C"],
+    lighting_sh,
     lmax: int,
     *,
     rcond: float | None = None,
@@ -98,7 +107,10 @@ def fit_brdf_sh(
     """Solve for $\\hat\\rho_{lpq}$, $l, p \\le$ `lmax`, from images of a sphere under known lighting (module docstring).
 
     **Arguments:** `obs` (convex object: no visibility terms); `lighting_sh`
-    real SH lighting `(n_coeffs, C)` with at least `lmax`; `lmax` static;
+    real SH lighting `(n_coeffs, C)` with at least `lmax`, a `solvers.Lighting`
+    (all of it, as SH to `lmax`: `Lighting.total_sh`), or a sequence of one
+    `Lighting` per view of `obs` (`obs.view_index`; each view's design rows use
+    its own lighting, memory $O(N)$); `lmax` static;
     `rcond` for the SVD (default 1e-10 in float64, 1e-5 in float32);
     `throw`: raise `solvers.SolveError` unless the status is `converged`.
     """
@@ -107,10 +119,24 @@ def fit_brdf_sh(
     if obs.transfer is not None or obs.reflected_visibility is not None:
         raise ValueError("fit_brdf_sh: the SH light-field model (eqs. 9, 10) has no shadowing; use a convex object")
     lmax = int(lmax)
+    n = jaxsh.num_coeffs(lmax)
+    lights = view_lightings(obs, lighting_sh, "lighting_sh") if not isinstance(lighting_sh, (Lighting, jax.Array, np.ndarray)) and not _is_number_list(lighting_sh) else None
+    if isinstance(lighting_sh, Lighting):
+        lighting_sh = lighting_sh.total_sh(lmax)
+    if lights is not None:
+        c = obs.n_channels
+        for k, lit in enumerate(lights):
+            if lit.n_channels not in (1, c):
+                raise ValueError(f"`lighting_sh[{k}]` has {lit.n_channels} channels, the images {c}")
+        L = jnp.stack([jnp.broadcast_to(lit.total_sh(lmax).astype(obs.values.dtype), (n, c)) for lit in lights])
+        dt = obs.values.dtype
+        rcond = (1e-10 if dt == jnp.float64 else 1e-5) if rcond is None else float(rcond)
+        ls, ps, qs = np.meshgrid(np.arange(lmax + 1), np.arange(lmax + 1), np.arange(lmax + 1), indexing="ij")
+        valid = (qs <= np.minimum(ls, ps)).reshape(-1)
+        return finish(_fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond), throw)
     L = jnp.asarray(lighting_sh, obs.values.dtype)
     if L.ndim == 1:
         L = L[:, None]
-    n = jaxsh.num_coeffs(lmax)
     if L.ndim != 2 or L.shape[0] < n or L.shape[1] not in (1, obs.n_channels):
         raise ValueError(f"`lighting_sh` must have shape (>= {n}, {obs.n_channels}), got {tuple(L.shape)}")
     L = jnp.broadcast_to(L[:n], (n, obs.n_channels))
@@ -123,11 +149,16 @@ def fit_brdf_sh(
 
 @eqx.filter_jit
 def _fit_brdf_sh(obs, L, lmax, cols, rcond):
-    lc = jaxsh.real_to_complex_coeffs(L, channels=True)  # (n, C) complex
+    per_view = L.ndim == 3  # (K, n, C): one lighting per view
+    if per_view:
+        lc = jax.vmap(lambda x: jaxsh.real_to_complex_coeffs(x, channels=True))(L)  # (K, n, C)
+    else:
+        lc = jaxsh.real_to_complex_coeffs(L, channels=True)  # (n, C) complex
     sw = jnp.sqrt(obs.weights)
 
     def channel(lcc, b):
-        a = brdf_sh_design(obs.normals, obs.views, lcc, lmax).reshape(obs.n_samples, -1)[:, cols]
+        vi = obs.view_index if per_view else None
+        a = brdf_sh_design(obs.normals, obs.views, lcc, lmax, vi).reshape(obs.n_samples, -1)[:, cols]
         a = a * sw[:, None]
         u, s, vt = jnp.linalg.svd(a, full_matrices=False)
         keep = s > rcond * s[0]
@@ -135,8 +166,8 @@ def _fit_brdf_sh(obs, L, lmax, cols, rcond):
         r = a @ x - sw * b
         return x, jnp.sum(keep), jnp.sum(r * r), s
 
-    x, rank, rss, sv = jax.vmap(channel, in_axes=(1, 1))(lc, obs.values)
-    c = L.shape[1]
+    x, rank, rss, sv = jax.vmap(channel, in_axes=(2 if per_view else 1, 1))(lc, obs.values)
+    c = L.shape[-1]
     rho = jnp.zeros(((lmax + 1) ** 3, c), obs.values.dtype).at[cols].set(x.T).reshape((lmax + 1,) * 3 + (c,))
     nobs = jnp.sum((obs.weights > 0).astype(rss.dtype)) * c
     data_ss = jnp.sum(obs.weights[:, None] * obs.values**2)

@@ -38,7 +38,9 @@ from ._render_manifest import (
     camera_from_manifest,
     check_outputs,
     check_unsupported,
+    lighting_from_block,
     lighting_from_manifest,
+    view_lighting_blocks,
 )
 
 
@@ -67,7 +69,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
             print(f"[{time.perf_counter() - t_all:7.1f} s] {msg}", file=sys.stderr, flush=True)
 
     m = jio.read_manifest(manifest_path)
-    if m["lighting"] is not None and m["brdf"] is not None:
+    blocks = view_lighting_blocks(m, "fit")  # None: the top-level lighting (or none) for every view
+    if (m["lighting"] is not None or blocks is not None) and m["brdf"] is not None:
         raise jio.ManifestError(f"{m['path']}: both `lighting` and `brdf` are given: nothing to recover (set one to null)")
     check_unsupported(m, "fit")
     for k, v in enumerate(m["views"]):
@@ -89,11 +92,21 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
                 raise jio.ManifestError(f"{m['path']}: `views[{k}].mask` is {info['width']}x{info['height']} but "
                                         f"`views[{k}].camera` is {c['width']}x{c['height']}: {view['mask']}")
     mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
+    def to_lighting(parts):
+        slow, fd, fe = parts
+        return Lighting(None if slow is None else jnp.asarray(slow), None if fd is None else jnp.asarray(fd),
+                        None if fe is None else jnp.asarray(fe))
+
     known = None
+    per_view = None  # one Lighting per view (`views[k].lighting`), else None
     if m["lighting"] is not None:
-        slow, fd, fe = lighting_from_manifest(m, 0.1, solve.get("render_lmax"))
-        known = Lighting(None if slow is None else jnp.asarray(slow), None if fd is None else jnp.asarray(fd),
-                         None if fe is None else jnp.asarray(fe))
+        known = to_lighting(lighting_from_manifest(m, 0.1, solve.get("render_lmax")))
+    if blocks is not None:
+        per_view = [known if (blk is m["lighting"] and known is not None)
+                    else to_lighting(lighting_from_block(blk, 0.1, solve.get("render_lmax"))) for blk in blocks]
+        if known is None:
+            known = per_view[0]  # for lighting.exr / result.json
+    view_light = (lambda k: known) if per_view is None else (lambda k: per_view[k])
     t = time.perf_counter()
     gbs, imgs, masks, extras = [], [], [], []
     for k, view in enumerate(m["views"]):
@@ -104,7 +117,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
             extra = {}
         else:
             g = jaxsh.mesh_gbuffer(cam, mesh)
-            extra = _mesh_visibility(mesh, g, None if known is None else known.fast_directions)
+            extra = _mesh_visibility(mesh, g, None if known is None else view_light(k).fast_directions)
         img, unclipped = jio.read_radiance(view["image"], view["encoding"], view["exposure"], view["saturation"])
         img = np.asarray(img, np.float64)[..., :3]
         if img.shape[:2] != tuple(np.asarray(g.mask).shape):
@@ -125,6 +138,9 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     for key in ("transfer", "reflected_visibility", "fast_visibility"):
         if extras and key in extras[0]:
             vis[key] = [np.asarray(e[key]) for e in extras]
+    if "fast_visibility" in vis:  # per-view source counts differ: pad the columns (unused ones are ignored)
+        j = max(a.shape[-1] for a in vis["fast_visibility"])
+        vis["fast_visibility"] = [np.pad(a, ((0, 0), (0, 0), (0, j - a.shape[-1]))) for a in vis["fast_visibility"]]
     obs = observations(gbs, imgs, masks=masks, saturation=solve.get("saturation"), **vis)
     timings["setup"] = time.perf_counter() - t
     say(f"{obs.n_samples} valid pixels in {len(gbs)} views")
@@ -132,7 +148,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     std = None
     if known is not None:
         say("known lighting: fitting Kd, Ks, mu, sigma (simplex + Levenberg-Marquardt, R&H sec. 6.1)")
-        res = fit_brdf(obs, known, fresnel=bool(solve.get("fresnel", True)))
+        res = fit_brdf(obs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)))
         brdf, lighting, std = res.brdf, known, res.std_errors
         light_sh = known.total_sh(lmax)
         display_sh = light_sh
@@ -165,7 +181,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     jio.write_image(out("lighting.exr"), env)
     jio.write_image(out("lighting.png"), np.maximum(env, 0))
     for k, g in enumerate(gbs):
-        img = np.asarray(predict(brdf, lighting, g.normal, g.view, mask=g.mask, **extras[k]))
+        lit_k = lighting if per_view is None else per_view[k]
+        img = np.asarray(predict(brdf, lit_k, g.normal, g.view, mask=g.mask, **extras[k]))
         jio.write_image(out(f"view_{k:03d}.exr"), img)
         jio.write_image(out(f"view_{k:03d}.png"), img)
     timings["write"] = time.perf_counter() - t
@@ -185,6 +202,11 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         "iterations": int(getattr(res, "iterations", 0)),
         "timings_s": timings,
     }
+    if per_view is not None:
+        result["lighting"]["per_view"] = "views[k].lighting of the manifest (this block: view 0's, or the top-level one)"
+    if known is not None:
+        result["at_bound"] = {k: bool(v) for k, v in res.stats["at_bound"].items()}
+        result["undetermined"] = {k: bool(v) for k, v in res.stats["undetermined"].items()}
     if m["brdf"] is not None:
         result["lighting"]["std_errors"] = _json(res.std_errors)
         result["lighting"]["supported_lmax"] = _json(res.supported_lmax)

@@ -23,7 +23,30 @@ def camera_from_manifest(c: dict):
 
 def lighting_from_manifest(m: dict, sigma: float, lmax: int | None = None):
     """(slow SH coefficients (n, 3) or None, fast directions (J, 3) or None, fast energy (J, 3) or None)."""
-    lit = m["lighting"]
+    return lighting_from_block(m["lighting"], sigma, lmax)
+
+
+def view_lighting_blocks(m: dict, command: str) -> list[dict] | None:
+    """The lighting block of every view: `views[k].lighting`, else the top-level `lighting`.
+
+    `None` when no view has its own lighting (the top-level one, maybe `null`, lights all views).
+    Raises `ManifestError` when some views have no lighting at all.
+    """
+    own = [v.get("lighting") for v in m["views"]]
+    if all(x is None for x in own):
+        return None
+    blocks = [x if x is not None else m["lighting"] for x in own]
+    missing = [k for k, x in enumerate(blocks) if x is None]
+    if missing:
+        raise jio.ManifestError(
+            f"{m['path']}: `views[{missing[0]}].lighting` is missing and there is no top-level `lighting`: "
+            f"`jaxsh {command}` needs the lighting of every view once one view has its own"
+        )
+    return blocks
+
+
+def lighting_from_block(lit: dict, sigma: float, lmax: int | None = None):
+    """`lighting_from_manifest` for one validated lighting block (top-level or `views[k].lighting`)."""
     slow = None
     if lit["envmap"] is not None:
         env = jio.read_envmap(lit["envmap"], up=lit["up"], layout=lit["layout"], encoding=lit.get("encoding")).astype(np.float64)
@@ -58,8 +81,6 @@ def check_unsupported(m: dict, command: str) -> None:
     for k, v in enumerate(m["views"]):
         if v.get("normal_map"):
             fields.append(f"views[{k}].normal_map")
-        if v.get("lighting") is not None:
-            fields.append(f"views[{k}].lighting")
     if m["solve"].get("brdf_model", "torrance_sparrow") != "torrance_sparrow":
         fields.append(f"solve.brdf_model = {m['solve']['brdf_model']!r}")
     if fields:
@@ -112,14 +133,24 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
     Files are written atomically.
     """
     m = jio.read_manifest(manifest_path)
-    if m["lighting"] is None or m["brdf"] is None:
+    blocks = view_lighting_blocks(m, "render")
+    if (m["lighting"] is None and blocks is None) or m["brdf"] is None:
         raise jio.ManifestError(f"{m['path']}: `jaxsh render` needs both `lighting` and `brdf` in the manifest")
     check_unsupported(m, "render")
     n = len(m["views"])
     outs = check_outputs(m, out_dir, [f"view_{k:03d}{ext}" for k in range(n) for ext in (".exr", ".png")])
     b = m["brdf"]
     lmax = m["solve"].get("render_lmax")
-    slow, fd, fe = lighting_from_manifest(m, b["sigma"], lmax)
+    if blocks is None:
+        blocks = [m["lighting"]] * n
+    cache = {}  # blocks shared by several views (the top-level one) are read once
+
+    def lit_of(k):
+        key = id(blocks[k])
+        if key not in cache:
+            cache[key] = lighting_from_block(blocks[k], b["sigma"], lmax)
+        return cache[key]
+
     mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
     os.makedirs(out_dir, exist_ok=True)
     written = []
@@ -127,6 +158,7 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
         if progress:
             print(f"[{k + 1}/{n}] rendering view {k}", file=sys.stderr, flush=True)
         cam = camera_from_manifest(view["camera"])
+        slow, fd, fe = lit_of(k)
         if mesh is None:
             g = jaxsh.sphere_gbuffer(cam, m["geometry"]["sphere"]["center"], m["geometry"]["sphere"]["radius"])
             extra = {}

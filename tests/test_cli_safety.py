@@ -181,8 +181,8 @@ def test_interrupted_result_json(tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     "change, words",
     [
-        (lambda m: m["views"][0].update(lighting={"directional": [{"direction": [0, 0, 1], "radiance": 1}]}),
-         ["`views[0].lighting` is not supported yet by `jaxsh fit`"]),
+        (lambda m: m["views"][0].update(lighting={"directional": 5}),  # views[k].lighting is supported: checked
+         ["`views[0].lighting.directional` must be a list"]),
         (lambda m: m.update(solve={"brdf_model": "sharing"}), ["solve.brdf_model", "not supported yet"]),
         (lambda m: m["views"][0]["camera"].update(fx=3), ["unknown field `views[0].camera.fx`"]),
         (lambda m: m["views"][0]["camera"].update(width=16.7), ["`views[0].camera.width` must be an integer"]),
