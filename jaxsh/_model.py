@@ -6,14 +6,28 @@ solver in `solvers` returns and accepts them. Both are final `equinox.Module`s
 (pytrees: they pass through `jit`, `grad` and `vmap`); their constructors
 convert the fields to float JAX arrays and check the shapes, raising
 `ValueError` naming the field and the expected shape.
+
+**Values** are checked too when they are concrete (outside `jit`/`vmap`):
+a non-finite entry in any field, $\\sigma \\le 0$, $\\mu < 1$, a negative
+$K_d$, $K_s$, source energy or disk radiance, a zero-length direction or a
+disk radius outside $(0, \\pi]$ raise `ValueError` naming the field and the
+offending value. Under a transformation the values are traced and these
+checks are skipped (the public renderers and BRDF functions check their
+parameters again with `equinox.error_if`). Solver *results* (standard
+errors, the estimate of a failed solve) may hold `inf`/NaN: they are built
+with `TorranceSparrow.unchecked(...)` / `Lighting.unchecked(...)`, the same
+constructor without the value checks.
 """
 
 from __future__ import annotations
 
+import contextvars
 from typing import final
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import as_float_array, lmax_from_size
@@ -39,6 +53,64 @@ def _float(x):
 
 def _shape(x):
     return tuple(int(s) for s in x.shape)
+
+
+_UNCHECKED = contextvars.ContextVar("jaxsh_model_unchecked", default=False)
+
+
+def _concrete(x):
+    """`x` as a NumPy array, or `None` when it is absent or traced (value checks are then skipped)."""
+    if x is None or isinstance(x, jax.core.Tracer):
+        return None
+    try:
+        return np.asarray(x)
+    except (TypeError, jax.errors.ConcretizationTypeError):  # pragma: no cover - defensive
+        return None
+
+
+def check_values(x, name: str, *, lower=None, lower_open: bool = False, upper=None, owner: str = "") -> None:
+    """Raise `ValueError` naming `name` if the concrete array `x` has a non-finite entry or one out of range.
+
+    `lower` / `upper` bound the values (`lower_open`: strictly above `lower`). Traced values pass.
+    """
+    a = _concrete(x)
+    if a is None or a.size == 0:
+        return
+    where = f"{owner}: " if owner else ""
+    bad = ~np.isfinite(a)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{where}`{name}` must be finite, got {a[idx] if idx else a[()]} at index {idx}")
+    rng = []
+    if lower is not None:
+        bad = (a <= lower) if lower_open else (a < lower)
+        rng.append(f"{'>' if lower_open else '>='} {lower}")
+    else:
+        bad = np.zeros(a.shape, bool)
+    if upper is not None:
+        bad = bad | (a > upper)
+        rng.append(f"<= {upper:.6g}")
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        v = a[idx] if idx else a[()]
+        raise ValueError(f"{where}`{name}` must be {' and '.join(rng)}, got {v}" + (f" at index {idx}" if idx else ""))
+
+
+def _check_directions(x, name: str, owner: str) -> None:
+    check_values(x, name, owner=owner)
+    a = _concrete(x)
+    if a is not None and a.size:
+        norm = np.linalg.norm(a, axis=-1)
+        if (norm == 0).any():
+            raise ValueError(f"{owner}: `{name}` must be non-zero directions, row {int(np.argmax(norm == 0))} is zero")
+
+
+def _unchecked_init(cls, args, kwargs):
+    token = _UNCHECKED.set(True)
+    try:
+        return cls(*args, **kwargs)
+    finally:
+        _UNCHECKED.reset(token)
 
 
 @final
@@ -114,6 +186,25 @@ class Lighting(eqx.Module):
         for name, k in chans:
             if k not in (1, c):
                 raise ValueError(f"`{name}` has {k} channels, the rest of the lighting {c} (give C or 1)")
+        if not _UNCHECKED.get():
+            self._check_values()
+
+    def _check_values(self):
+        o = "Lighting"
+        check_values(self.slow_sh, "slow_sh", owner=o)
+        if self.fast_directions is not None:
+            _check_directions(self.fast_directions, "fast_directions", o)
+            check_values(self.fast_energy, "fast_energy", lower=0.0, owner=o)
+        if self.disk_directions is not None:
+            _check_directions(self.disk_directions, "disk_directions", o)
+            check_values(self.disk_radius, "disk_radius", lower=0.0, lower_open=True, upper=float(np.pi), owner=o)
+            check_values(self.disk_radiance, "disk_radiance", lower=0.0, owner=o)
+
+    @classmethod
+    def unchecked(cls, *args, **kwargs) -> "Lighting":
+        """The constructor without the value checks (shapes are still checked): for solver results
+        that may hold `inf`/NaN or negative estimates."""
+        return _unchecked_init(cls, args, kwargs)
 
     def _directions(self, name):
         s = _shape(getattr(self, name))
@@ -196,9 +287,11 @@ class TorranceSparrow(eqx.Module):
     - `kd`, `ks`: `(C,)` homogeneous (a scalar is one channel), `(..., C)`
       textures matching the pixels of the renderers, or `(T, C)` per texel
       (with `solvers.Observations.texel`, R&H sec. 6.4); their shapes broadcast.
-    - `mu`: scalar relative index of refraction, or `None` for no Fresnel
-      term ($F = 1$, metals in R&H fig. 11).
-    - `sigma`: scalar roughness (radians).
+    - `mu`: scalar relative index of refraction $\\ge 1$, or `None` for no
+      Fresnel term ($F = 1$, metals in R&H fig. 11).
+    - `sigma`: scalar roughness (radians), $> 0$.
+
+    `kd`, `ks` $\\ge 0$; every value finite (checked when concrete, module docstring).
 
     Positional order: `TorranceSparrow(kd, ks, mu, sigma)`.
     """
@@ -219,6 +312,18 @@ class TorranceSparrow(eqx.Module):
             raise ValueError(f"`mu` must be a scalar (shape ()) or None, got shape {_shape(self.mu)}")
         if self.sigma.ndim != 0:
             raise ValueError(f"`sigma` must be a scalar (shape ()), got shape {_shape(self.sigma)}")
+        if not _UNCHECKED.get():
+            o = "TorranceSparrow"
+            check_values(self.kd, "kd", lower=0.0, owner=o)
+            check_values(self.ks, "ks", lower=0.0, owner=o)
+            check_values(self.mu, "mu", lower=1.0, owner=o)
+            check_values(self.sigma, "sigma", lower=0.0, lower_open=True, owner=o)
+
+    @classmethod
+    def unchecked(cls, *args, **kwargs) -> "TorranceSparrow":
+        """The constructor without the value checks (shapes are still checked): for solver results
+        (standard errors, the estimate of a failed solve) that may hold `inf`/NaN."""
+        return _unchecked_init(cls, args, kwargs)
 
     @property
     def n_channels(self) -> int:

@@ -246,7 +246,10 @@ def _broadcast_to_batch(x, batch, core, name, dt):
     x = jnp.asarray(x)
     want = tuple(batch) + tuple(core)
     if x.ndim < len(core) or x.shape[x.ndim - len(core):] != tuple(core) or not _broadcasts_to(x.shape, want):
-        raise ValueError(f"`{name}` must have shape {want}, got {tuple(x.shape)}")
+        what = {"transfer": " (the batch of `normals`/`views` + 9 transfer coefficients)",
+                "fast_visibility": f" (the batch of `normals`/`views` + one column per source of `lighting.fast_directions`, J = {core[0] if core else 0})",
+                }.get(name, " (the batch of `normals`/`views`)")
+        raise ValueError(f"`{name}` must have shape {want}{what}, got {tuple(x.shape)}")
     return jnp.broadcast_to(x.astype(dt), want).reshape((-1,) + tuple(core))
 
 

@@ -15,6 +15,15 @@ continuous parameters are traced arrays: they can be differentiated and
 vmapped, and a new value never triggers a new trace. Directions are *not*
 normalized here: pass unit vectors.
 
+**Invalid parameters and NaN.** A parameter outside its domain — a
+roughness $\\sigma \\le 0$ (Torrance–Sparrow), $m \\le 0$ (Cook–Torrance),
+$\\alpha \\le 0$ (Ward), $\\sigma < 0$ (Oren–Nayar), a Phong exponent
+$s \\le -1$, a relative index $\\mu < 1$ in a BRDF or $\\mu \\le 0$ in
+`fresnel_*` — is an error, never a finite number: `ValueError` naming the
+parameter when its value is concrete, `equinox.error_if` when it is traced
+(under `jit`, `vmap`, `grad`). NaN inputs (directions or parameters) are
+not checked: they propagate to NaN outputs, as in `jax.numpy`.
+
 **Below the horizon.** Every model returns exactly 0 when
 $\\omega_i\\cdot n \\le 0$ or $\\omega_o\\cdot n \\le 0$. The model is then
 evaluated at a harmless substitute configuration ($\\omega_i = \\omega_o = n$)
@@ -77,6 +86,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import as_float_array, check_dirs
@@ -143,6 +153,28 @@ def _prepare(args):
         a = a.astype(dtype)
         out.append(jnp.broadcast_to(a, batch + a.shape[a.ndim - core :]))
     return out
+
+
+def _require(x, bad, name: str, expected: str):
+    """`x`, with entries where `bad(x)` an error: `ValueError` when concrete, `equinox.error_if` when traced.
+
+    NaN is not "bad" (it propagates, module docstring): `bad` compares, and comparisons with NaN are False.
+    """
+    if isinstance(x, jax.core.Tracer):
+        return eqx.error_if(x, jnp.any(bad(x)), f"`{name}` must be {expected}")
+    a = np.asarray(x)
+    m = np.asarray(bad(a))
+    if m.any():
+        raise ValueError(f"`{name}` must be {expected}, got {a[m].ravel()[0] if a.ndim else a[()]}")
+    return x
+
+
+def _positive(x, name):
+    return _require(x, lambda a: a <= 0, name, "> 0")
+
+
+def _index(x, name, lo=1.0):
+    return _require(x, lambda a: a < lo, name, f">= {lo:g} (a relative index of refraction)")
 
 
 # --------------------------------------------------------------------------- safe primitives
@@ -607,7 +639,7 @@ def fresnel_dielectric(cos_theta: Float[Array, "*batch"], mu: Float[Array, "*bat
     Comparable to `mitsuba.fresnel` (its `r` output).
     """
     c, mu = _prepare([("cos_theta", cos_theta, "scalar"), ("mu", mu, "scalar")])
-    return _fresnel_jit(c, mu)
+    return _fresnel_jit(c, _positive(mu, "mu"))
 
 
 def fresnel_normalized(cos_theta: Float[Array, "*batch"], mu: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
@@ -624,7 +656,7 @@ def fresnel_normalized(cos_theta: Float[Array, "*batch"], mu: Float[Array, "*bat
     **Returns:** `(...)`.
     """
     c, mu = _prepare([("cos_theta", cos_theta, "scalar"), ("mu", mu, "scalar")])
-    return _fresnel_normalized_jit(c, mu)
+    return _fresnel_normalized_jit(c, _positive(mu, "mu"))
 
 
 # --------------------------------------------------------------------------- BRDF models
@@ -690,12 +722,12 @@ def phong_transfer(
     $\\vec R\\cdot\\vec L = 2(n\\cdot\\omega_i)(n\\cdot\\omega_o) - \\omega_i\\cdot\\omega_o$.
 
     **Arguments:** `wi`, `wo`, `n`: unit vectors `(..., 3)`; `s`: Phong
-    exponent `(...)` (traced, any real $s \\ge 0$).
+    exponent `(...)` (traced, any real $s > -1$).
 
     **Returns:** `(...)`.
     """
     wi, wo, n, s = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("s", s, "scalar")])
-    return _phong(wi, wo, n, s, False)
+    return _phong(wi, wo, n, _require(s, lambda a: a <= -1, "s", "> -1 (the Phong exponent)"), False)
 
 
 def phong(
@@ -711,12 +743,12 @@ def phong(
     $\\vec R\\cdot\\vec L > 0$.
 
     **Arguments:** `wi`, `wo`, `n`: unit vectors `(..., 3)`; `s`: Phong
-    exponent `(...)` (traced, any real $s \\ge 0$).
+    exponent `(...)` (traced, any real $s > -1$).
 
     **Returns:** `(...)`; 0 below either horizon.
     """
     wi, wo, n, s = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("s", s, "scalar")])
-    return _phong(wi, wo, n, s, True)
+    return _phong(wi, wo, n, _require(s, lambda a: a <= -1, "s", "> -1 (the Phong exponent)"), True)
 
 
 @eqx.filter_jit
@@ -771,7 +803,8 @@ def torrance_sparrow(
         wi, wo, n, kd, ks, sigma = out
     else:
         wi, wo, n, kd, ks, mu, sigma = out
-    return _torrance_sparrow(wi, wo, n, kd, ks, mu, sigma)
+        mu = _index(mu, "mu")
+    return _torrance_sparrow(wi, wo, n, kd, ks, mu, _positive(sigma, "sigma"))
 
 
 @eqx.filter_jit
@@ -821,7 +854,7 @@ def cook_torrance(
     wi, wo, n, kd, ks, m, mu = _prepare(
         [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("kd", kd, "scalar"), ("ks", ks, "scalar"), ("m", m, "scalar"), ("mu", mu, "scalar")]
     )
-    return _cook_torrance(wi, wo, n, kd, ks, m, mu)
+    return _cook_torrance(wi, wo, n, kd, ks, _positive(m, "m"), _index(mu, "mu"))
 
 
 @eqx.filter_jit
@@ -863,7 +896,7 @@ def ward_isotropic(
     wi, wo, n, rd, rs, al = _prepare(
         [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("rho_d", rho_d, "scalar"), ("rho_s", rho_s, "scalar"), ("alpha", alpha, "scalar")]
     )
-    return _ward(wi, wo, n, rd, rs, al)
+    return _ward(wi, wo, n, rd, rs, _positive(al, "alpha"))
 
 
 @eqx.filter_jit
@@ -905,7 +938,7 @@ def oren_nayar(
     wi, wo, n, a, sg = _prepare(
         [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("albedo", albedo, "scalar"), ("sigma", sigma, "scalar")]
     )
-    return _oren_nayar(wi, wo, n, a, sg)
+    return _oren_nayar(wi, wo, n, a, _require(sg, lambda x: x < 0, "sigma", ">= 0 (0: Lambertian)"))
 
 
 @eqx.filter_jit

@@ -74,6 +74,69 @@ def _texture(x, batch, name):
     return jnp.broadcast_to(x, want).reshape(-1, x.shape[-1])
 
 
+def _concrete(x):
+    """`x` as a NumPy array, or `None` when traced (the checks inside jit take over)."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return np.asarray(x)
+
+
+def _check_geometry(x, name, batch, mask):
+    """A concrete `normals` / `views` array: finite and non-zero at every pixel of `mask` (all pixels without one)."""
+    a = _concrete(x)
+    if a is None or a.size == 0:
+        return
+    norm = np.linalg.norm(np.broadcast_to(a, tuple(batch) + (3,)), axis=-1)
+    bad = ~np.isfinite(norm) | (norm == 0)
+    where = "without a `mask`"
+    if mask is not None:
+        m = _concrete(mask)
+        if m is None:
+            return
+        bad &= np.broadcast_to(m.astype(bool), bad.shape)
+        where = "inside the `mask`"
+    if bad.any():
+        i = tuple(int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(f"`{name}` must be finite, non-zero directions {where}; pixel {i} is {a[i] if a.ndim > 1 else a}")
+
+
+def _check_channels(pairs):
+    """Channel counts `[(name, C), ...]` must agree (or be 1): `ValueError` naming the two that disagree."""
+    pairs = [(n, int(k)) for n, k in pairs]
+    first = next(((n, k) for n, k in pairs if k != 1), None)
+    if first is None:
+        return 1
+    for n, k in pairs:
+        if k not in (1, first[1]):
+            raise ValueError(
+                f"channel mismatch: {first[0]} has {first[1]} channels but {n} has {k} (give the same C, or 1)"
+            )
+    return first[1]
+
+
+def _brdf_channels(kd, ks):
+    return [("`kd`", kd.shape[-1]), ("`ks`", ks.shape[-1])]
+
+
+def _lighting_channels(lighting):
+    out = []
+    for f in ("slow_sh", "fast_energy", "disk_radiance"):
+        x = getattr(lighting, f)
+        if x is not None:
+            out.append((f"`lighting.{f}`", x.shape[-1]))
+    return out
+
+
+def _check_sigma_traced(sigma, mu):
+    """Inside jit: σ ≤ 0 or μ < 1 is an error (`equinox.error_if`); concrete values were checked by `TorranceSparrow`."""
+    if not isinstance(sigma, jax.core.Tracer) and not isinstance(mu, jax.core.Tracer):
+        return sigma, mu
+    sigma = eqx.error_if(sigma, sigma <= 0, "`sigma` must be > 0")
+    if mu is not None:
+        mu = eqx.error_if(mu, mu < 1, "`mu` must be >= 1")
+    return sigma, mu
+
+
 def _batch(normals, views):
     try:
         return jnp.broadcast_shapes(normals.shape[:-1], views.shape[:-1])
@@ -132,8 +195,13 @@ def render_practical(
     normals = check_dirs(normals, "normals")
     views = check_dirs(views, "views")
     batch = _batch(normals, views)
+    if mask is not None and not _broadcasts_to(jnp.shape(mask), batch):
+        raise ValueError(f"`mask` must have shape {tuple(batch)} (the batch of `normals` and `views`), got {tuple(jnp.shape(mask))}")
+    _check_geometry(normals, "normals", batch, mask)
+    _check_geometry(views, "views", batch, mask)
     kd = _channels(brdf.kd, "kd")
     ks = _channels(brdf.ks, "ks")
+    _check_channels(_brdf_channels(kd, ks) + _lighting_channels(lighting))
     dt = jnp.result_type(normals.dtype, views.dtype, kd.dtype, ks.dtype)
     n = jnp.broadcast_to(normals, batch + (3,)).astype(dt).reshape(-1, 3)
     v = jnp.broadcast_to(views, batch + (3,)).astype(dt).reshape(-1, 3)
@@ -147,7 +215,8 @@ def render_practical(
         n = jnp.where(mask[:, None], n, up)
         v = jnp.where(mask[:, None], v, up)
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
-    out = _render_practical(n, v, mask, kd, ks, mu, jnp.asarray(brdf.sigma, dt), slow, fdir, fen, *vis, bool(exact_fast_diffuse))
+    sigma, mu = _check_sigma_traced(jnp.asarray(brdf.sigma, dt), mu)
+    out = _render_practical(n, v, mask, kd, ks, mu, sigma, slow, fdir, fen, *vis, bool(exact_fast_diffuse))
     c = out.total.shape[-1]
     return Components(*(x.reshape(batch + (c,)) for x in out))
 
@@ -258,16 +327,32 @@ def render_reference(
     normals = check_dirs(normals, "normals")
     views = check_dirs(views, "views")
     batch = _batch(normals, views)
+    _check_geometry(normals, "normals", batch, None)
+    _check_geometry(views, "views", batch, None)
     kd = _channels(brdf.kd, "kd")
     ks = _channels(brdf.ks, "ks")
     mu, sigma = brdf.mu, brdf.sigma
     dt = jnp.result_type(normals.dtype, views.dtype, kd.dtype, ks.dtype)
     dirs_all, rad_all = [], []
-    c = max(kd.shape[-1], ks.shape[-1])
+    chans = _brdf_channels(kd, ks) + ([] if lighting is None else _lighting_channels(lighting))
+    env = None
     if envmap is not None:
         env = as_float_array(envmap, "envmap")
         if env.ndim != 3:
             raise ValueError(f"`envmap` must have shape (H, W, C), got {tuple(env.shape)}")
+        chans.append(("`envmap`", env.shape[-1]))
+        ce = _concrete(env)
+        if ce is not None and not np.all(np.isfinite(ce)):
+            i = tuple(int(k) for k in np.argwhere(~np.isfinite(ce))[0])
+            raise ValueError(f"`envmap` must be finite, got {ce[i]} at texel {i}")
+    _check_channels(chans)
+    for name, x in (("kd", kd), ("ks", ks)):
+        if x.ndim > 1 and not _broadcasts_to(x.shape, tuple(batch) + (x.shape[-1],)):
+            raise ValueError(f"`{name}` must have shape (C,) or {tuple(batch)} + (C,) (a texture), got {tuple(x.shape)}")
+    if points is not None and not _broadcasts_to(jnp.shape(points), tuple(batch) + (3,)):
+        raise ValueError(f"`points` must have shape {tuple(batch) + (3,)} (the batch of `normals`), got {tuple(jnp.shape(points))}")
+    c = max(kd.shape[-1], ks.shape[-1])
+    if env is not None:
         h, w, ce = env.shape
         c = max(c, ce)
         dirs_all.append(latlong_directions(h, w, dtype=dt).reshape(-1, 3))
@@ -302,7 +387,9 @@ def render_reference(
 
         pts = jnp.broadcast_to(jnp.asarray(points, dt), batch + (3,)).reshape(-1, 3)
         vis = jnp.asarray(directional_visibility(mesh, np.asarray(pts), np.asarray(n), np.asarray(sd)), dt)
-    out = _reference(n, v, kd, ks, None if mu is None else jnp.asarray(mu, dt), jnp.asarray(sigma, dt), sd, sl, vis, chunk)
+    sigma, mu = _check_sigma_traced(jnp.asarray(sigma, dt), None if mu is None else jnp.asarray(mu, dt))
+    chunk = check_positive_int(chunk, "chunk")
+    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk)
     return out.reshape(batch + (c,))
 
 

@@ -185,6 +185,8 @@ def observations(
         if m_user is not None:
             sel &= m_user[k].astype(bool)
         w = np.ones(sel.shape, dt) if w_user is None else w_user[k].astype(dt)
+        if w_user is not None and not np.all(np.isfinite(w[sel]) & (w[sel] >= 0)):
+            raise ValueError(f"`weights[{k}]` must be finite and >= 0 inside the mask (0 drops a pixel)")
         sel &= w > 0
         vals = imgs[k]
         finite = np.all(np.isfinite(vals), axis=1)

@@ -417,7 +417,8 @@ def factorize(
         t = np.linspace(np.log(0.05), np.log(2.5), 9)
         for rnd in range(3):
             vals = np.asarray(_mu_candidates(sub, jnp.asarray(t, dt), lmax, chunk, rcond))
-            k = int(np.nanargmin(vals))
+            # all-NaN when the data carry no signal (black images): keep the centre, the status says no_signal
+            k = int(np.nanargmin(vals)) if np.any(np.isfinite(vals)) else len(t) // 2
             best = t[k]
             if rnd < 2:
                 step = t[1] - t[0]
@@ -439,7 +440,7 @@ def factorize(
     ks, res1, golden_steps = _stage1_final(obs, mu, lmax, chunk, rcond)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
-    std_inf = TorranceSparrow(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
+    std_inf = TorranceSparrow.unchecked(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
     zero = jnp.asarray(0)
     stats = {"num_mu_candidates": jnp.asarray(its1), "num_steps_simplex": zero, "num_steps_golden": golden_steps,
              "num_steps_bisection": zero, "n_obs": res1.stats["n_obs"]}
@@ -450,16 +451,16 @@ def factorize(
         return finish(res, throw)
 
     if not find_sigma:
-        brdf = TorranceSparrow(1.0 - ks, ks, mu, jnp.asarray(jnp.nan, dt))
+        brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, jnp.asarray(jnp.nan, dt))
         return result(brdf, res1.lighting, None, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     src = find_source.__wrapped__(filtered, region=region)
     stats["num_steps_bisection"] = src.num_steps
     if not refine:
-        brdf = TorranceSparrow(1.0 - ks, ks, mu, src.sigma)
+        brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
-    brdf = TorranceSparrow(1.0 - ks, ks, mu, sigma)
+    brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, sigma)
     se_mu = None
     if mu is not None:
         se_mu = jnp.asarray(jnp.inf, dt)
@@ -468,7 +469,7 @@ def factorize(
             nobs = obs.n_samples * obs.n_channels
             s2 = float(rms) ** 2 * nobs / max(nobs - (jaxsh.num_coeffs(lmax) + 1) * obs.n_channels - 2 * obs.n_channels - 2, 1)
             se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
-    std = TorranceSparrow(se_ks, se_ks, se_mu, se_sigma)
+    std = TorranceSparrow.unchecked(se_ks, se_ks, se_mu, se_sigma)
     finite = jnp.all(jnp.isfinite(ks)) & jnp.isfinite(sigma) & jnp.isfinite(rms)
     status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_nm)
     stats["num_steps_simplex"] = its2

@@ -161,7 +161,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         lighting = res.lighting
         light_sh = res.coeffs
         display_sh = jaxsh.filter_lighting_microfacet(res.coeffs, brdf.sigma)
-        std = TorranceSparrow(jnp.zeros(3), jnp.zeros(3), None, jnp.zeros(()))
+        std = TorranceSparrow.unchecked(jnp.zeros(3), jnp.zeros(3), None, jnp.zeros(()))
     else:
         say(f"unknown lighting and BRDF: factorization (R&H sec. 6.3), l* = {lmax}")
         res = factorize(obs, lmax, fresnel=bool(solve.get("fresnel", True)))

@@ -91,7 +91,7 @@ class LightingResult(Solution):
 
     @property
     def lighting(self) -> Lighting:
-        return Lighting(self.coeffs)
+        return Lighting.unchecked(self.coeffs)
 
 
 def _check_brdf(brdf, name="brdf"):

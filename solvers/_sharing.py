@@ -431,6 +431,8 @@ def fit_sharing(
         status = Status.singular
     elif not (np.isfinite(float(rss)) and np.isfinite(float(rel))):
         status = Status.nonfinite
+    elif not float(data_ss) > 0:
+        status = Status.no_signal  # all-zero values (black images) or weights: the zero fit, no information
     elif not reached:
         status = Status.tolerance_not_reached
     else:
@@ -494,6 +496,16 @@ class Samples(eqx.Module):
         return self.wi, self.wo, self.n, self.values, self.cos_i
 
 
+def _unit_rows(a, name, where=""):
+    """Directions normalised to unit length (a direction's length carries no meaning); zero or non-finite rows are errors."""
+    norm = np.linalg.norm(a, axis=-1, keepdims=True)
+    bad = ~np.isfinite(norm[..., 0]) | (norm[..., 0] == 0)
+    if bad.any():
+        i = tuple(int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(f"`{name}` must be finite non-zero directions{' ' + where if where else ''}, got {a[i].tolist()} at {i}")
+    return a / norm
+
+
 def _per_light(x, n_lights, channels, name):
     a = np.asarray(x, dtype=np.float64)
     if a.ndim == 0:
@@ -526,7 +538,10 @@ def reflectance_samples(
 
     **Arguments:** `images` `(L, H, W, C)` or `(L, H, W)`; `normal` `(H, W, 3)`;
     `view` `(H, W, 3)` or `(3,)` (towards the camera); `lights` `(L, 3)`
-    (towards the lights); `irradiance` scalar, `(L,)` or `(L, C)`; `mask`
+    (towards the lights). Normals, views and lights are directions: they are
+    normalised to unit length here (a light of norm 2 is the same light; its
+    strength is `irradiance`), and a zero or non-finite one (inside `mask`)
+    is a `ValueError`; `irradiance` scalar, `(L,)` or `(L, C)`; `mask`
     `(H, W)` bool; `xy` `(H, W, 2)`; `visible` `(L, H, W)` bool.
 
     **Returns:** `Samples` (concrete NumPy-backed arrays; call outside `jit`).
@@ -548,10 +563,17 @@ def reflectance_samples(
     lt = np.asarray(lights, dtype=np.float64)
     if lt.shape != (nl, 3):
         raise ValueError(f"`lights` must have shape ({nl}, 3), got {lt.shape}")
+    lt = _unit_rows(lt, "lights")
     e = _per_light(irradiance, nl, c, "irradiance")
+    if not np.all(np.isfinite(e)) or np.any(e <= 0):
+        raise ValueError(f"`irradiance` must be finite and > 0, got {e.min() if np.all(np.isfinite(e)) else 'a non-finite value'}")
     m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     if m.shape != (h, w):
         raise ValueError(f"`mask` must have shape ({h}, {w}), got {m.shape}")
+    nrm = np.where(m[..., None], nrm, np.asarray([0.0, 0.0, 1.0]))
+    v = np.where(m[..., None], v, np.asarray([0.0, 0.0, 1.0]))
+    nrm = _unit_rows(nrm, "normal", "inside the mask")
+    v = _unit_rows(v, "view", "inside the mask")
     if xy is not None:
         xy = np.asarray(xy, dtype=np.float64)
         if xy.shape != (h, w, 2):
@@ -591,6 +613,9 @@ def _render_geometry(normal, view, light, mask):
     shape = normal.shape[:-1]
     view = jnp.broadcast_to(jnp.asarray(view, normal.dtype), normal.shape)
     light = jnp.broadcast_to(jnp.asarray(light, normal.dtype), normal.shape)
+    # a light direction is a direction: normalised, as in `reflectance_samples` (zero rows stay zero: not lit)
+    ln2 = jnp.sum(light * light, -1, keepdims=True)
+    light = light * jnp.where(ln2 > 0, jax.lax.rsqrt(jnp.where(ln2 > 0, ln2, 1.0)), 0.0)
     cos_i = jnp.sum(normal * light, -1)
     cos_o = jnp.sum(normal * view, -1)
     ok = (cos_i > 0.0) & (cos_o > 0.0)
@@ -836,6 +861,8 @@ def fit_dichromatic(
     s = np.asarray(colors, np.float64)
     if s.shape != (nl, 3):
         raise ValueError(f"`colors` must have shape ({nl}, 3), got {s.shape}")
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError(f"`colors` must be finite and > 0 (the source colours divide the images), got {s.tolist()}")
     e = _per_light(irradiance, nl, 1, "irradiance")[:, 0]
     eff = (s * e[:, None])[:, None, None, :]
     ds = reflectance_samples(dimg / eff, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
@@ -850,7 +877,8 @@ def fit_dichromatic(
     albedo = _fill(albedo)
     albedo = np.maximum(albedo, 1e-6 * np.max(albedo))
     a_s = albedo.reshape(-1, 3)[np.asarray(ds.pixel)]
-    dvals = np.asarray(ds.values) / a_s
+    # black images: a zero albedo map; the samples are then 0 (no signal), not 0/0
+    dvals = np.divide(np.asarray(ds.values), a_s, out=np.zeros(a_s.shape), where=a_s > 0)
     sc = jnp.asarray([m_xy, m_xy, 1.0, 1.0, m_w])
     dfit = fit_sharing(ds.points, dvals, n_centers_diffuse, scale=sc, smoothing=smoothing, key=key,
                        weights=ds.cos_i, **kwargs)
@@ -926,7 +954,11 @@ def fit_one_image(
     s = np.asarray(color, np.float64)
     if s.shape != (3,):
         raise ValueError(f"`color` must have shape (3,), got {s.shape}")
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError(f"`color` must be finite and > 0 (the source colour divides the image), got {s.tolist()}")
     e = float(irradiance)
+    if not (np.isfinite(e) and e > 0):
+        raise ValueError(f"`irradiance` must be finite and > 0, got {e}")
     lt = np.asarray(light, np.float64).reshape(1, 3)
     ds = reflectance_samples(dimg[None] / (s * e), normal, view, lt, 1.0, mask, xy, min_cos=min_cos)
     albedo = np.full((h * w, 3), np.nan)
