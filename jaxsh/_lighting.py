@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array, check_dirs, check_lmax
 from ._convolution import convolve
@@ -38,7 +38,7 @@ def _energy(energy, n_sources: int, name: str):
     return energy
 
 
-def directional_light_sh(directions: Float[Array, "J 3"], energy: Float[Array, "J *C"], lmax: int) -> Float[Array, "n_coeffs C"]:
+def directional_light_sh(directions: Real[ArrayLike, "J 3"], energy: Real[ArrayLike, "J *C"], lmax: int) -> Float[Array, "n_coeffs C"]:
     """SH coefficients of delta sources: $L_{lm} = \\sum_j L_j Y_{lm}(\\omega_j)$ (R&H sec. 5.2).
 
     **Arguments:** `directions` `(J, 3)`; `energy` `(J,)` or `(J, C)`; `lmax`.
@@ -54,7 +54,7 @@ def directional_light_sh(directions: Float[Array, "J 3"], energy: Float[Array, "
 
 
 def disk_light_sh(
-    direction: Float[Array, "3"], angular_radius: Float[Array, ""], radiance: Float[Array, "*C"], lmax: int
+    direction: Real[ArrayLike, "3"], angular_radius: Real[ArrayLike, ""], radiance: Real[ArrayLike, "*C"], lmax: int
 ) -> Float[Array, "n_coeffs *C"]:
     """SH coefficients of a uniform disk (spherical cap) source, in closed form.
 
@@ -96,7 +96,7 @@ def is_fast_source(angular_radius, sigma, ratio: float = 0.25):
     return as_float_array(angular_radius, "angular_radius") < ratio * as_float_array(sigma, "sigma")
 
 
-def filter_lighting_microfacet(coeffs: Float[Array, "n_coeffs *C"], sigma: Float[Array, ""]) -> Float[Array, "n_coeffs *C"]:
+def filter_lighting_microfacet(coeffs: Real[ArrayLike, "n_coeffs *C"], sigma: Real[ArrayLike, ""]) -> Float[Array, "n_coeffs *C"]:
     """$L^{slow}_{lm} = e^{-(\\sigma l)^2} L_{lm}$: the lighting a microfacet lobe sees (R&H eqs. 17, 20, 22)."""
     coeffs = as_float_array(coeffs, "coeffs")
     lmax = int(round(np.sqrt(coeffs.shape[0]))) - 1
@@ -105,9 +105,9 @@ def filter_lighting_microfacet(coeffs: Float[Array, "n_coeffs *C"], sigma: Float
 
 
 def split_disk_sources(
-    directions: Float[Array, "K 3"],
-    angular_radii: Float[Array, " K"],
-    radiance: Float[Array, "K C"],
+    directions: Real[ArrayLike, "K 3"],
+    angular_radii: Real[ArrayLike, " K"],
+    radiance: Real[ArrayLike, "K C"],
     sigma: float,
     lmax: int,
     ratio: float = 0.25,

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
 
 from ._checks import as_float_array, check_dirs
 from ._indexing import sh_degrees
@@ -92,15 +92,15 @@ class PracticalTerms(eqx.Module):
 
 
 def practical_terms(
-    normals: Float[Array, "N 3"],
-    views: Float[Array, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
+    views: Real[ArrayLike, "N 3"],
     *,
-    slow_sh: Float[Array, "n_coeffs C"] | None = None,
-    fast_directions: Float[Array, "J 3"] | None = None,
-    fast_energy: Float[Array, "J C"] | None = None,
-    transfer: Float[Array, "N 9"] | None = None,
-    fast_visibility: Float[Array, "N J"] | None = None,
-    reflected_visibility: Float[Array, " N"] | None = None,
+    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
+    fast_directions: Real[ArrayLike, "J 3"] | None = None,
+    fast_energy: Real[ArrayLike, "J C"] | None = None,
+    transfer: Real[ArrayLike, "N 9"] | None = None,
+    fast_visibility: Real[ArrayLike, "N J"] | None = None,
+    reflected_visibility: Real[ArrayLike, " N"] | None = None,
     chunk: int = 8192,
 ) -> PracticalTerms:
     """Precompute the terms of R&H eq. 24 for `N` pixels (module docstring).

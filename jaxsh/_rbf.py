@@ -45,7 +45,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array
 from ._reflectance import _frame, _prepare, _rusinkiewicz_local, _to_local, _uvw
@@ -66,7 +66,7 @@ def _safe_sqrt(x):
 
 
 def scaled_distances(
-    a: Float[Array, "Na d"], b: Float[Array, "Nb d"], scale: Float[Array, " d"] | None = None
+    a: Real[ArrayLike, "Na d"], b: Real[ArrayLike, "Nb d"], scale: Real[ArrayLike, " d"] | None = None
 ) -> Float[Array, "Na Nb"]:
     """Anisotropic distances $\\|M(a_i - b_j)\\|$, $M = \\mathrm{diag}$(`scale`) (Zickler 2006 eq. 11).
 
@@ -231,7 +231,7 @@ class RBFModel(eqx.Module):
     def n_centers(self) -> int:
         return self.centers.shape[0]
 
-    def __call__(self, points: Float[Array, "*M d"]) -> Float[Array, "*M C"]:
+    def __call__(self, points: Real[ArrayLike, "*M d"]) -> Float[Array, "*M C"]:
         p = as_float_array(points, "points")
         d = self.dim
         single = p.ndim == 1
@@ -255,11 +255,11 @@ def _call(model, points):
 
 
 def rbf_evaluate(
-    centers: Float[Array, "K d"],
-    weights: Float[Array, "K *C"],
-    poly: Float[Array, "d1 *C"],
-    points: Float[Array, "M d"],
-    scale: Float[Array, " d"] | None = None,
+    centers: Real[ArrayLike, "K d"],
+    weights: Real[ArrayLike, "K *C"],
+    poly: Real[ArrayLike, "d1 *C"],
+    points: Real[ArrayLike, "M d"],
+    scale: Real[ArrayLike, " d"] | None = None,
     chunk: int | None = None,
 ) -> Float[Array, "M *C"]:
     """Evaluate the RBF interpolant of Zickler 2006 eqs. 12–13 at `points` (chunked).
@@ -279,10 +279,10 @@ def rbf_evaluate(
 
 
 def sbrdf_points(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    xy: Float[Array, "*batch 2"] | None = None,
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    xy: Real[ArrayLike, "*#batch 2"] | None = None,
 ) -> Float[Array, "*batch D"]:
     """Domain points of (S)BRDF samples: $(u, v, w)$ (eq. 7) or $(x, y, u, v, w)$ (eq. 13).
 

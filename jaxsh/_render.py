@@ -31,7 +31,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array, check_dirs, check_positive_int
 from ._grids import latlong_directions, latlong_weights
@@ -65,21 +65,21 @@ def _bcast(x, batch, c):
 
 
 def render_practical(
-    normals: Float[Array, "*batch 3"],
-    views: Float[Array, "*batch 3"],
-    kd: Float[Array, "*batch C"],
-    ks: Float[Array, "*batch C"],
-    mu: Float[Array, ""] | None,
-    sigma: Float[Array, ""],
+    normals: Real[ArrayLike, "*#batch 3"],
+    views: Real[ArrayLike, "*#batch 3"],
+    kd: Real[ArrayLike, "*#batch C"],
+    ks: Real[ArrayLike, "*#batch C"],
+    mu: Real[ArrayLike, ""] | None,
+    sigma: Real[ArrayLike, ""],
     *,
-    slow_sh: Float[Array, "n_coeffs C"] | None = None,
-    fast_directions: Float[Array, "J 3"] | None = None,
-    fast_energy: Float[Array, "J C"] | None = None,
-    transfer: Float[Array, "*batch 9"] | None = None,
-    fast_visibility: Float[Array, "*batch J"] | None = None,
-    reflected_visibility: Float[Array, "*batch"] | None = None,
+    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
+    fast_directions: Real[ArrayLike, "J 3"] | None = None,
+    fast_energy: Real[ArrayLike, "J C"] | None = None,
+    transfer: Real[ArrayLike, "*#batch 9"] | None = None,
+    fast_visibility: Real[ArrayLike, "*#batch J"] | None = None,
+    reflected_visibility: Real[ArrayLike, "*#batch"] | None = None,
     exact_fast_diffuse: bool = True,
-    mask: Float[Array, "*batch"] | None = None,
+    mask: Real[ArrayLike, "*#batch"] | None = None,
 ) -> Components:
     """The practical model of R&H 2001 eq. 24 per pixel (module docstring).
 
@@ -236,19 +236,19 @@ def _disk_quadrature(direction, radius, n_theta, n_phi, dt):
 
 
 def render_reference(
-    normals: Float[Array, "*batch 3"],
-    views: Float[Array, "*batch 3"],
-    kd: Float[Array, "*batch C"],
-    ks: Float[Array, "*batch C"],
-    mu: Float[Array, ""] | None,
-    sigma: Float[Array, ""],
+    normals: Real[ArrayLike, "*#batch 3"],
+    views: Real[ArrayLike, "*#batch 3"],
+    kd: Real[ArrayLike, "*#batch C"],
+    ks: Real[ArrayLike, "*#batch C"],
+    mu: Real[ArrayLike, ""] | None,
+    sigma: Real[ArrayLike, ""],
     *,
-    envmap: Float[Array, "H W C"] | None = None,
+    envmap: Real[ArrayLike, "H W C"] | None = None,
     directional: tuple | None = None,
     disks: tuple | None = None,
     disk_nodes: tuple[int, int] = (48, 96),
     mesh=None,
-    points: Float[Array, "*batch 3"] | None = None,
+    points: Real[ArrayLike, "*#batch 3"] | None = None,
     chunk: int = 4096,
 ) -> Float[Array, "*batch C"]:
     """Reference renderer: the reflection equation with the full Torrance-Sparrow BRDF.

@@ -83,7 +83,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
 
 from ._checks import as_float_array, check_lmax, check_positive_int, coeff_layout
 from ._reflectance import reflect, tangent_frame
@@ -259,9 +259,9 @@ def _camera_rays(camera):
 
 
 def look_at(
-    eye: Float[Array, "*batch 3"],
-    target: Float[Array, "*batch 3"],
-    up: Float[Array, "*batch 3"] = (0.0, 0.0, 1.0),
+    eye: Real[ArrayLike, "*#batch 3"],
+    target: Real[ArrayLike, "*#batch 3"],
+    up: Real[ArrayLike, "*#batch 3"] = (0.0, 0.0, 1.0),
 ) -> Float[Array, "*batch 4 4"]:
     """A camera-to-world matrix looking from `eye` at `target` (OpenCV convention).
 
@@ -350,7 +350,7 @@ class GBuffer(eqx.Module):
 
 
 def sphere_gbuffer(
-    camera: Camera, center: Float[Array, "3"], radius: Float[Array, ""]
+    camera: Camera, center: Real[ArrayLike, "3"], radius: Real[ArrayLike, ""]
 ) -> GBuffer:
     """Analytic G-buffer of a sphere: ray–sphere intersection for every pixel.
 
@@ -673,9 +673,9 @@ def _visible_pairs(caster, origins, normals, dirs):
 
 def directional_visibility(
     mesh,
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    directions: Float[Array, "J 3"],
+    points: Real[ArrayLike, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
+    directions: Real[ArrayLike, "J 3"],
     eps: float | None = None,
     engine: str = "auto",
 ) -> Float[Array, "N J"]:
@@ -717,9 +717,9 @@ def directional_visibility(
 
 def reflected_visibility(
     mesh,
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    views: Float[Array, "N 3"],
+    points: Real[ArrayLike, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
+    views: Real[ArrayLike, "N 3"],
     eps: float | None = None,
     engine: str = "auto",
 ) -> Float[Array, " N"]:
@@ -781,8 +781,8 @@ def hemisphere_quadrature(n_dirs: int, lmax: int = 0) -> tuple[np.ndarray, np.nd
 
 def visibility_sh(
     mesh,
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
+    points: Real[ArrayLike, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
     lmax: int,
     n_dirs: int = 1024,
     eps: float | None = None,
@@ -843,8 +843,8 @@ def visibility_sh(
 
 
 def visibility_weighted_irradiance(
-    transfer: Float[Array, "*batch n_coeffs"], lighting_coeffs: Float[Array, "n_coeffs *C"]
-) -> Float[Array, "*batch *C"]:
+    transfer: Real[ArrayLike, "*batch n_T"], lighting_coeffs: Real[ArrayLike, "n_L *C"]
+) -> Float[Array, "..."]:
     """Irradiance with visibility, $E(x) = \\sum_{lm} L_{lm} T_{lm}(x)$.
 
     A contraction of transfer vectors (`visibility_sh`) with real SH lighting

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array, check_lmax, check_positive_int
 
@@ -61,7 +61,7 @@ def _rgamma_log_sign(a):
     return logv, sign.astype(a.dtype)
 
 
-def phong_spectrum(s: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def phong_spectrum(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
     """Exact $A_l = \\Lambda_l\\hat\\rho_l$ of the normalized Phong lobe, any real $s > -1$.
 
     $A_l = (s+1)\\int_0^1 u^s P_l(u)\\,du$ (R&H eq. 18, thesis eq. 3.36), in the
@@ -92,7 +92,7 @@ def _phong_spectrum(s, lmax):
     return sign * jnp.exp(logc + logr - gammaln((sb + l + 3) / 2))
 
 
-def phong_spectrum_gaussian(s: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def phong_spectrum_gaussian(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
     """Gaussian approximation $A_l \\approx \\exp(-l^2/2s)$ (R&H eq. 19, thesis eq. 3.40).
 
     Good for large $s$ and $l \\ll s$; use `phong_spectrum` for exact values.
@@ -103,7 +103,7 @@ def phong_spectrum_gaussian(s: Float[Array, "*batch"], lmax: int) -> Float[Array
     return jnp.exp(-(l * l) / (2 * s[..., None]))
 
 
-def microfacet_spectrum(sigma: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def microfacet_spectrum(sigma: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
     """$A_l \\approx \\exp(-(\\sigma l)^2)$ of the Torrance-Sparrow lobe at normal exitance (R&H eq. 20).
 
     Multiply by $F(\\mu,\\theta_o)$ for other exitant angles (R&H sec. 5.2); the
@@ -123,7 +123,7 @@ def mirror_spectrum(lmax: int, dtype=None) -> Float[Array, " lmax+1"]:
     return jnp.ones(lmax + 1, _default_dtype(dtype))
 
 
-def legendre_p(u: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def legendre_p(u: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
     """Legendre polynomials $P_0..P_{l_{max}}$ at `u` by the three-term recurrence."""
     u = as_float_array(u, "u")
     lmax = check_lmax(lmax)
@@ -161,7 +161,7 @@ def radial_spectrum(
     return 2 * jnp.pi * jnp.einsum("n,nl->l", jnp.asarray(w, dt) * fu, legendre_p(u, lmax))
 
 
-def recoverable_orders(A: Float[Array, " lmax+1"], noise: float) -> tuple[np.ndarray, int]:
+def recoverable_orders(A: Real[ArrayLike, " lmax+1"], noise: float) -> tuple[np.ndarray, int]:
     """Which orders $l$ of the lighting a BRDF spectrum lets inverse lighting recover.
 
     Inverse lighting divides by $A_l$ (R&H eq. 12): a relative noise level
@@ -185,10 +185,10 @@ def recoverable_orders(A: Float[Array, " lmax+1"], noise: float) -> tuple[np.nda
 
 
 def torrance_sparrow_spectrum(
-    sigma: Float[Array, ""],
+    sigma: Real[ArrayLike, ""],
     lmax: int,
-    theta_o: Float[Array, ""] = 0.0,
-    mu: Float[Array, ""] | None = None,
+    theta_o: Real[ArrayLike, ""] = 0.0,
+    mu: Real[ArrayLike, ""] | None = None,
     n_theta: int = 192,
     n_phi: int = 128,
 ) -> Float[Array, " lmax+1"]:

@@ -21,7 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
@@ -71,7 +71,7 @@ def brdf_sh_design(normals, views, L_complex, lmax: int):
 
 
 @blas_single_thread
-def fit_brdf_sh(obs: Observations, lighting_sh: Float[Array, "n_coeffs C"], lmax: int, *, rcond: float | None = None) -> BRDFSHResult:
+def fit_brdf_sh(obs: Observations, lighting_sh: Real[ArrayLike, "n_coeffs C"], lmax: int, *, rcond: float | None = None) -> BRDFSHResult:
     """Solve for $\\hat\\rho_{lpq}$, $l, p \\le$ `lmax`, from images of a sphere under known lighting (module docstring).
 
     **Arguments:** `obs` (convex object: no visibility terms); `lighting_sh`

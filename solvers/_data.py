@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
@@ -129,7 +129,7 @@ class Observations(eqx.Module):
             take(self.pixel_index), self.image_shapes, self.n_texels,
         )
 
-    def to_images(self, values: Float[Array, "N C"], fill: float = 0.0) -> list[np.ndarray]:
+    def to_images(self, values: Real[ArrayLike, "N C"], fill: float = 0.0) -> list[np.ndarray]:
         """Scatter per-sample `values` `(N, C)` back into one `(H, W, C)` image per view."""
         values = np.asarray(values)
         if values.ndim != 2 or values.shape[0] != self.n_samples:
@@ -162,7 +162,7 @@ def _per_view(arrs, n_views, name, shape_tail, hw):
 
 def observations(
     gbuffers: Sequence[jaxsh.GBuffer],
-    images: Sequence[Float[Array, "H W C"]],
+    images: Sequence[Real[ArrayLike, "H W C"]],
     *,
     masks: Sequence | None = None,
     weights: Sequence | None = None,
@@ -306,8 +306,8 @@ def practical_terms_for(obs: Observations, lighting: Lighting, chunk: int = 8192
 def predict(
     brdf: TorranceSparrow,
     lighting: Lighting,
-    normals: Float[Array, "*batch 3"],
-    views: Float[Array, "*batch 3"],
+    normals: Real[ArrayLike, "*#batch 3"],
+    views: Real[ArrayLike, "*#batch 3"],
     **visibility,
 ) -> Float[Array, "*batch C"]:
     """Radiance of `brdf` under `lighting` at new normals / views: `jaxsh.render_practical(...).total`.

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
@@ -206,7 +206,7 @@ def _delta_profile(sigma, lmax: int, theta):
 
 @blas_single_thread
 def find_source(
-    coeffs: Float[Array, "n_coeffs C"],
+    coeffs: Real[ArrayLike, "n_coeffs C"],
     *,
     region: tuple | None = None,
     height: int = 128,
