@@ -5,8 +5,8 @@ Hypothesis profiles: "ci" (default, fast) and "thorough"
 (`HYPOTHESIS_PROFILE=thorough pytest`).
 
 Shapes in signatures are checked by jaxtyping's import hook with beartype
-(`--jaxtyping-packages=jaxsh,solvers,beartype.beartype` in pyproject's
-`addopts`; pytest-xdist workers get it too). Inside `pytest.raises(...)` the
+(`--jaxtyping-packages=jaxsh,solvers,tests._typecheck.typechecker` in
+pyproject's `addopts`; see tests/_typecheck.py; pytest-xdist workers get it too). Inside `pytest.raises(...)` the
 check is switched off (`jaxtyping.config.jaxtyping_disable`): those blocks test
 the library's own errors (a `ValueError` naming the argument and the expected
 shape, DESIGN.md), which is what a user gets, since the annotation check runs
@@ -21,6 +21,8 @@ import jax
 import jaxtyping
 import numpy as np
 import pytest
+
+from . import _typecheck as _typecheck  # the hook's typechecker; before any `import jaxsh`
 from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_enable_x64", True)
