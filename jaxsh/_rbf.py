@@ -231,7 +231,7 @@ class RBFModel(eqx.Module):
     def n_centers(self) -> int:
         return self.centers.shape[0]
 
-    def __call__(self, points: Real[ArrayLike, "*M d"]) -> Float[Array, "*M C"]:
+    def __call__(self, points: Real[ArrayLike, "*M d"]) -> Float[Array, "..."]:
         p = as_float_array(points, "points")
         d = self.dim
         single = p.ndim == 1
