@@ -13,9 +13,10 @@ with an *output* type:
   included), a `numpy.ndarray`, a NumPy scalar, or a Python scalar (only where
   the shape is `""`). `Real` rather than `Float` where integer input is
   converted to the default float (`as_float_array`). JAX's `ArrayLike` does not
-  include Python lists; the few small vectors the README passes as lists
-  (`center=[0, 0, 0.0]`, `eye=`, a colour) use the `...Like` aliases below,
-  which add `Sequence`.
+  include Python lists; the small vectors and tables the README passes as
+  lists (`center=[0, 0, 0.0]`, `eye=`, a colour, `fast_energy=[[...]]`) add
+  `SequenceLike`, and per-channel values that may be one number for all
+  channels (`kd=0.5`) add `ScalarLike`.
 - outputs: `Float[Array, "dims"]` (a `jax.Array`).
 
 **Dimension names.** `*batch` is a variadic batch shape, `*#batch` one that
@@ -29,7 +30,7 @@ enough, so `"..."`), and the layout is stated in the docstring.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TypeAlias, Union
+from typing import Any, TypeAlias
 
 from jaxtyping import Array, ArrayLike, Float, Real
 
@@ -37,17 +38,15 @@ from jaxtyping import Array, ArrayLike, Float, Real
 ScalarLike: TypeAlias = Real[ArrayLike, ""]
 """A real scalar: Python `int`/`float`, a NumPy scalar or a 0-d array."""
 
-Vector3Like: TypeAlias = Union[Real[ArrayLike, "3"], Sequence[float]]
-"""A 3-vector (a point or a direction): an array of shape `(3,)` or a sequence of three numbers."""
-
-ColorLike: TypeAlias = Union[Real[ArrayLike, "*C"], Sequence[float]]
-"""Per-channel values: a scalar, an array `(C,)`, or a sequence of numbers."""
-
-MatrixLike: TypeAlias = Union[Real[ArrayLike, "*batch J C"], Sequence[Sequence[float]]]
-"""A `(J, C)` table (e.g. source energies), an array or nested sequences."""
+SequenceLike: TypeAlias = Sequence[Any]
+"""A (nested) Python list or tuple of numbers, as `jnp.asarray` takes it; its
+shape is checked by the function (`ValueError`), not by the annotation. Added
+to the array-like input type of the small vectors and tables that the README
+passes as lists: `look_at(eye=[0, 0, 5.0], ...)`, `sphere_gbuffer(center=...)`,
+colours `(C,)`, source tables `(J, C)`."""
 
 # Outputs.
 Scalar: TypeAlias = Float[Array, ""]
 """A 0-d float JAX array."""
 
-__all__ = ["Array", "ArrayLike", "ColorLike", "MatrixLike", "Scalar", "ScalarLike", "Vector3Like"]
+__all__ = ["Array", "ArrayLike", "Scalar", "ScalarLike", "SequenceLike"]

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array, check_lmax, check_positive_int
 from ._indexing import sh_degrees, sh_lambda, sh_orders
@@ -161,7 +162,7 @@ def light_field_coefficients(
 
 
 def light_field_basis(
-    alpha: Real[ArrayLike, ""], beta: Real[ArrayLike, ""], wo_local: Real[ArrayLike, "3"], lmax: int
+    alpha: Real[ArrayLike, ""], beta: Real[ArrayLike, ""], wo_local: Real[ArrayLike, "3"] | SequenceLike, lmax: int
 ) -> Complex[Array, "n_coeffs p q2"]:
     """$C_{lmpq}(\\alpha, \\beta, \\omega_o') = \\Lambda_l^{-1} D^l_{mq}(\\alpha) e^{im\\beta} Y_{pq}(\\omega_o')$ (R&H eq. 9).
 

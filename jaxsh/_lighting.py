@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
+from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import as_float_array, check_dirs, check_lmax
 from ._convolution import convolve
@@ -38,7 +39,7 @@ def _energy(energy, n_sources: int, name: str):
     return energy
 
 
-def directional_light_sh(directions: Real[ArrayLike, "J 3"], energy: Real[ArrayLike, "J *C"], lmax: int) -> Float[Array, "n_coeffs C"]:
+def directional_light_sh(directions: Real[ArrayLike, "J 3"] | SequenceLike, energy: Real[ArrayLike, "J *C"] | SequenceLike, lmax: int) -> Float[Array, "n_coeffs C"]:
     """SH coefficients of delta sources: $L_{lm} = \\sum_j L_j Y_{lm}(\\omega_j)$ (R&H sec. 5.2).
 
     **Arguments:** `directions` `(J, 3)`; `energy` `(J,)` or `(J, C)`; `lmax`.
@@ -54,7 +55,7 @@ def directional_light_sh(directions: Real[ArrayLike, "J 3"], energy: Real[ArrayL
 
 
 def disk_light_sh(
-    direction: Real[ArrayLike, "3"], angular_radius: Real[ArrayLike, ""], radiance: Real[ArrayLike, "*C"], lmax: int
+    direction: Real[ArrayLike, "3"] | SequenceLike, angular_radius: Real[ArrayLike, ""], radiance: Real[ArrayLike, "*C"] | ScalarLike | SequenceLike, lmax: int
 ) -> Float[Array, "n_coeffs *C"]:
     """SH coefficients of a uniform disk (spherical cap) source, in closed form.
 
@@ -105,9 +106,9 @@ def filter_lighting_microfacet(coeffs: Real[ArrayLike, "n_coeffs *C"], sigma: Re
 
 
 def split_disk_sources(
-    directions: Real[ArrayLike, "K 3"],
-    angular_radii: Real[ArrayLike, " K"],
-    radiance: Real[ArrayLike, "K C"],
+    directions: Real[ArrayLike, "K 3"] | SequenceLike,
+    angular_radii: Real[ArrayLike, " K"] | SequenceLike,
+    radiance: Real[ArrayLike, "K C"] | SequenceLike,
     sigma: float,
     lmax: int,
     ratio: float = 0.25,

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array, check_dirs
 from ._indexing import sh_degrees
@@ -96,8 +97,8 @@ def practical_terms(
     views: Real[ArrayLike, "N 3"],
     *,
     slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
-    fast_directions: Real[ArrayLike, "J 3"] | None = None,
-    fast_energy: Real[ArrayLike, "J C"] | None = None,
+    fast_directions: Real[ArrayLike, "J 3"] | SequenceLike | None = None,
+    fast_energy: Real[ArrayLike, "J C"] | SequenceLike | None = None,
     transfer: Real[ArrayLike, "N 9"] | None = None,
     fast_visibility: Real[ArrayLike, "N J"] | None = None,
     reflected_visibility: Real[ArrayLike, " N"] | None = None,

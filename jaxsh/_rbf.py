@@ -46,6 +46,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array
 from ._reflectance import _frame, _prepare, _rusinkiewicz_local, _to_local, _uvw
@@ -66,7 +67,7 @@ def _safe_sqrt(x):
 
 
 def scaled_distances(
-    a: Real[ArrayLike, "Na d"], b: Real[ArrayLike, "Nb d"], scale: Real[ArrayLike, " d"] | None = None
+    a: Real[ArrayLike, "Na d"], b: Real[ArrayLike, "Nb d"], scale: Real[ArrayLike, " d"] | SequenceLike | None = None
 ) -> Float[Array, "Na Nb"]:
     """Anisotropic distances $\\|M(a_i - b_j)\\|$, $M = \\mathrm{diag}$(`scale`) (Zickler 2006 eq. 11).
 
@@ -259,7 +260,7 @@ def rbf_evaluate(
     weights: Real[ArrayLike, "K *C"],
     poly: Real[ArrayLike, "d1 *C"],
     points: Real[ArrayLike, "M d"],
-    scale: Real[ArrayLike, " d"] | None = None,
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
     chunk: int | None = None,
 ) -> Float[Array, "M *C"]:
     """Evaluate the RBF interpolant of Zickler 2006 eqs. 12–13 at `points` (chunked).

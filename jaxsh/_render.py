@@ -31,7 +31,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Real
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import as_float_array, check_dirs, check_positive_int
 from ._grids import latlong_directions, latlong_weights
@@ -67,19 +68,19 @@ def _bcast(x, batch, c):
 def render_practical(
     normals: Real[ArrayLike, "*#batch 3"],
     views: Real[ArrayLike, "*#batch 3"],
-    kd: Real[ArrayLike, "*#batch C"],
-    ks: Real[ArrayLike, "*#batch C"],
+    kd: Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike,
+    ks: Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike,
     mu: Real[ArrayLike, ""] | None,
     sigma: Real[ArrayLike, ""],
     *,
     slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
-    fast_directions: Real[ArrayLike, "J 3"] | None = None,
-    fast_energy: Real[ArrayLike, "J C"] | None = None,
+    fast_directions: Real[ArrayLike, "J 3"] | SequenceLike | None = None,
+    fast_energy: Real[ArrayLike, "J C"] | SequenceLike | None = None,
     transfer: Real[ArrayLike, "*#batch 9"] | None = None,
     fast_visibility: Real[ArrayLike, "*#batch J"] | None = None,
     reflected_visibility: Real[ArrayLike, "*#batch"] | None = None,
     exact_fast_diffuse: bool = True,
-    mask: Real[ArrayLike, "*#batch"] | None = None,
+    mask: Bool[ArrayLike, "*#batch"] | None = None,
 ) -> Components:
     """The practical model of R&H 2001 eq. 24 per pixel (module docstring).
 
@@ -238,8 +239,8 @@ def _disk_quadrature(direction, radius, n_theta, n_phi, dt):
 def render_reference(
     normals: Real[ArrayLike, "*#batch 3"],
     views: Real[ArrayLike, "*#batch 3"],
-    kd: Real[ArrayLike, "*#batch C"],
-    ks: Real[ArrayLike, "*#batch C"],
+    kd: Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike,
+    ks: Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike,
     mu: Real[ArrayLike, ""] | None,
     sigma: Real[ArrayLike, ""],
     *,

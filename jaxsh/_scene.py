@@ -84,6 +84,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array, check_lmax, check_positive_int, coeff_layout
 from ._reflectance import reflect, tangent_frame
@@ -259,9 +260,9 @@ def _camera_rays(camera):
 
 
 def look_at(
-    eye: Real[ArrayLike, "*#batch 3"],
-    target: Real[ArrayLike, "*#batch 3"],
-    up: Real[ArrayLike, "*#batch 3"] = (0.0, 0.0, 1.0),
+    eye: Real[ArrayLike, "*#batch 3"] | SequenceLike,
+    target: Real[ArrayLike, "*#batch 3"] | SequenceLike,
+    up: Real[ArrayLike, "*#batch 3"] | SequenceLike = (0.0, 0.0, 1.0),
 ) -> Float[Array, "*batch 4 4"]:
     """A camera-to-world matrix looking from `eye` at `target` (OpenCV convention).
 
@@ -350,7 +351,7 @@ class GBuffer(eqx.Module):
 
 
 def sphere_gbuffer(
-    camera: Camera, center: Real[ArrayLike, "3"], radius: Real[ArrayLike, ""]
+    camera: Camera, center: Real[ArrayLike, "3"] | SequenceLike, radius: Real[ArrayLike, ""]
 ) -> GBuffer:
     """Analytic G-buffer of a sphere: ray–sphere intersection for every pixel.
 

@@ -36,9 +36,9 @@ class Lighting(eqx.Module):
     - `fast_energy`: `(J, C)` total energy $L_j$ of each source (eq. 23), or `None`.
     """
 
-    slow_sh: Float[Array, "n_coeffs C"] | None = None
-    fast_directions: Float[Array, "J 3"] | None = None
-    fast_energy: Float[Array, "J C"] | None = None
+    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None
+    fast_directions: Real[ArrayLike, "J 3"] | Sequence[Sequence[float]] | None = None
+    fast_energy: Real[ArrayLike, "J C"] | Sequence[Sequence[float]] | None = None
 
     def __check_init__(self):
         if self.slow_sh is None and self.fast_directions is None:

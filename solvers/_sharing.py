@@ -36,6 +36,7 @@ normal incidence (DESIGN.md, "capture manifest").
 from __future__ import annotations
 
 import operator
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -310,7 +311,7 @@ def fit_sharing(
     points: Real[ArrayLike, "N d"],
     values: Real[ArrayLike, "N *C"],
     n_centers: int,
-    scale: Real[ArrayLike, " d"] | None = None,
+    scale: Real[ArrayLike, " d"] | Sequence[float] | None = None,
     smoothing: float | Real[ArrayLike, ""] = 0.0,
     key: Array | None = None,
     *,
