@@ -1,4 +1,5 @@
-"""Type aliases for signatures (private; `solvers` uses the public names re-exported by jaxtyping).
+"""Type aliases for signatures (private to `jaxsh`; `solvers`, which never imports a private
+name of `jaxsh`, spells the same types with `jaxtyping` and `collections.abc.Sequence`).
 
 The shapes in signatures are checked when the tests run (jaxtyping's import hook
 with beartype, `--jaxtyping-packages` in `pyproject.toml`); they are not checked
@@ -22,9 +23,11 @@ with an *output* type:
 **Dimension names.** `*batch` is a variadic batch shape, `*#batch` one that
 broadcasts against the other `*#batch` arguments; a name is bound once per
 call, so two arguments with the same name must agree. jaxtyping allows only one
-variadic dimension per annotation: an array that is "batch, then optional
-channels" is annotated with a single variadic (`"*batch n_coeffs"` is not
-enough, so `"..."`), and the layout is stated in the docstring.
+variadic dimension per annotation (`"*batch n_coeffs *C"` raises when
+evaluated): an array that is "batch, then optional channels" is annotated
+`"..."` (or with the one variadic that is unambiguous, e.g. `"n_coeffs *C"`),
+and its layouts are stated in the docstring. A dimension computed from an
+`int` argument is written with braces: `" {lmax}+1"`.
 """
 
 from __future__ import annotations
