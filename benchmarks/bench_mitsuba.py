@@ -16,7 +16,7 @@ Scene (identical in both renderers): unit sphere at the origin, orthographic
 camera at +z looking at the origin with +y up (``jaxsh.look_at``), 96x96
 pixels covering [-1.2, 1.2]^2; a purely diffuse material, R&H Kd =
 (0.7, 0.6, 0.5)/pi (R&H: BRDF = Kd, so Mitsuba's ``diffuse`` reflectance =
-pi*Kd); lighting = the procedural HDR sky of ``solvers._synthetic``
+pi*Kd); lighting = the procedural HDR sky of ``solvers.synthetic``
 (``procedural_sky(64, 128)``: blue gradient, dim ground, bright exponential
 sun lobe of ~0.08 rad).
 
@@ -77,7 +77,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import jaxsh  # noqa: E402
 from _common import fmt_e, fmt_t, time_jax  # noqa: E402
-from solvers._synthetic import procedural_sky  # noqa: E402
+from solvers.synthetic import procedural_sky  # noqa: E402
 
 RES = 96
 HALF = 1.2
@@ -246,7 +246,7 @@ def main():
           f"(1-px silhouette band excluded)")
     env = jaxsh_map(64, 128)
     assert np.allclose(env, np.asarray(procedural_sky(64, 128)), rtol=1e-12, atol=1e-12), \
-        "sky_radiance() no longer matches solvers._synthetic.procedural_sky"
+        "sky_radiance() no longer matches solvers.synthetic.procedural_sky"
 
     # ---- convention check: sun lobe only, off-axis
     s_test = (0.55, -0.45, 0.70)

@@ -70,7 +70,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
 
-from solvers._synthetic import procedural_sky  # noqa: E402
+from solvers.synthetic import procedural_sky  # noqa: E402
 
 try:
     import mitsuba  # noqa: F401

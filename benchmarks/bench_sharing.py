@@ -58,7 +58,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
 
 import solvers  # noqa: E402
-from solvers import _sharing_scenes as Z  # noqa: E402
+from solvers import synthetic as Z  # noqa: E402
 
 try:
     import interpax
@@ -180,7 +180,7 @@ def main():
     jax.block_until_ready(g.model.weights)
     t_warm = time.perf_counter() - t0
     tab.add(f"greedy {k_g} of {len(p_g)}", "jaxsh fit_sharing", fmt_t(t_warm), fmt_t(t_first), "",
-            f"rel. RMS {float(g.rms):.4f}, {len(g.history_centers)} rounds")
+            f"rel. RMS {float(g.rel_rms):.4f}, {len(g.history_centers)} rounds")
     t0 = time.perf_counter()
     itp = scipy_greedy(p_g, v_g, w, k_g, k_g // 10, k_g // 10)
     t_sp = time.perf_counter() - t0

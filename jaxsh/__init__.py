@@ -1,6 +1,6 @@
 """jaxsh: signal-processing inverse rendering in JAX (pure forward maths).
 
-Conventions are in DESIGN.md and the README; every public function states
+Conventions are in docs/conventions.md and the README; every public function states
 the ones it uses.
 """
 
@@ -93,26 +93,35 @@ from ._lighting import (
     is_fast_source as is_fast_source,
     split_disk_sources as split_disk_sources,
 )
+from ._model import Lighting as Lighting, TorranceSparrow as TorranceSparrow
 from ._render import Components as Components, render_practical as render_practical, render_reference as render_reference
-from ._scene import (
-    GBuffer as GBuffer,
+from ._camera import (
     OrthographicCamera as OrthographicCamera,
     PinholeCamera as PinholeCamera,
     camera_rays as camera_rays,
+    look_at as look_at,
+)
+from ._gbuffer import (
+    GBuffer as GBuffer,
+    normal_map_gbuffer as normal_map_gbuffer,
+    sphere_gbuffer as sphere_gbuffer,
+    visibility_weighted_irradiance as visibility_weighted_irradiance,
+)
+from ._raycast import (
     directional_visibility as directional_visibility,
     embree_available as embree_available,
     hemisphere_quadrature as hemisphere_quadrature,
-    look_at as look_at,
     mesh_gbuffer as mesh_gbuffer,
     reflected_visibility as reflected_visibility,
-    sphere_gbuffer as sphere_gbuffer,
     visibility_sh as visibility_sh,
-    visibility_weighted_irradiance as visibility_weighted_irradiance,
 )
 from ._practical import PracticalTerms as PracticalTerms, practical_terms as practical_terms
 from ._rbf import (
     RBFModel as RBFModel,
+    rbf_auto_chunk as rbf_auto_chunk,
     rbf_evaluate as rbf_evaluate,
+    rbf_fit as rbf_fit,
+    rbf_solve as rbf_solve,
     sbrdf_points as sbrdf_points,
     scaled_distances as scaled_distances,
 )

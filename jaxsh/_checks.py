@@ -1,7 +1,33 @@
 """Argument validation shared by the public functions (private).
 
 Shape and option errors are raised as `ValueError` while tracing; they name
-the argument and the expected shape.
+the argument and the expected shape. The rules below hold for every public
+function of `jaxsh`; each function's docstring says which of them apply.
+
+**Data arrays versus parameters.** The pure array kernels (`real_sh`,
+`rotate_sh`, `convolve`, `project_latlong`, the spectra, `irradiance`, the
+lighting SH, ...) treat their *data* like `jax.numpy` does: NaN in, NaN out
+(no check is paid on every element of a large array). A *parameter* outside
+its documented range (σ ≤ 0, a Phong exponent s ≤ −1, a disk radius ∉ (0, π],
+negative energy or radiance, lmax < 0) is an error, never a finite number:
+a `ValueError` naming the argument and the valid range when the value is
+concrete, an `equinox.error_if` run-time error when it is traced (under
+`jit`; the returned value carries the check, so it is always used). A NaN
+parameter is not "out of range": it propagates like data. Cameras and
+G-buffers are entry points: there NaN and inf are errors too.
+
+**Directions.** Direction inputs of the kernels (`real_sh`, `irradiance`,
+`directional_light_sh`, `disk_light_sh`, `fit_sh`, ...) are normalized, so
+their length does not matter; a zero-length or non-finite direction is an
+error. Functions that require unit vectors without normalizing say so.
+
+**dtypes.** Floating inputs keep their dtype (float32 or float64; several
+inputs are promoted to the widest). Integer and bool arrays are converted to
+the default float dtype (float32, or float64 under `jax_enable_x64`).
+float16 and bfloat16 are rejected with a `ValueError` ("float16 is not
+supported: use float32 or float64"): the recurrences and quadratures lose
+all accuracy in 11 bits of mantissa. Complex input is rejected where a real
+array is expected. The same rule holds for `dtype=` keywords.
 """
 
 from __future__ import annotations
@@ -9,21 +35,81 @@ from __future__ import annotations
 import math
 import operator
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+_HALF = (jnp.float16, jnp.bfloat16)
 
-def as_float_array(x, name: str):
-    """`x` as a floating JAX array; integer and bool input go to the default float."""
+
+def _reject_half(dtype, name: str) -> None:
+    if jnp.dtype(dtype) in tuple(jnp.dtype(d) for d in _HALF):
+        raise ValueError(f"`{name}`: {jnp.dtype(dtype).name} is not supported: use float32 or float64")
+
+
+def as_float_array(x, name: str, complex_ok: bool = False):
+    """`x` as a floating JAX array (the dtype rule of the module docstring).
+
+    Integer and bool input go to the default float; float16/bfloat16 are a
+    `ValueError`; complex input is a `ValueError` unless `complex_ok`.
+    """
     try:
         x = jnp.asarray(x)
-    except TypeError as e:  # pragma: no cover - message only
-        raise ValueError(f"`{name}` must be an array, got {type(x).__name__}") from e
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"`{name}` must be a numeric array, got {type(x).__name__}") from e
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
-        raise ValueError(f"`{name}` must be real, got dtype {x.dtype}")
+        if not complex_ok:
+            raise ValueError(f"`{name}` must be real, got dtype {x.dtype}")
+        return x
+    if not (jnp.issubdtype(x.dtype, jnp.number) or x.dtype == jnp.bool_):
+        raise ValueError(f"`{name}` must be a numeric array, got dtype {x.dtype}")
+    _reject_half(x.dtype, name)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
+
+
+def check_dtype(dtype, name: str = "dtype"):
+    """A `dtype=` keyword: None (the default float) or float32/float64."""
+    if dtype is None:
+        return jnp.result_type(float)
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"`{name}` must be a float dtype (float32 or float64), got {dtype!r}") from None
+    _reject_half(dt, name)
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise ValueError(f"`{name}` must be a float dtype (float32 or float64), got {dt.name}")
+    return dt
+
+
+def is_traced(x) -> bool:
+    """True when `x` is a JAX tracer (its values are not known now)."""
+    return isinstance(x, jax.core.Tracer)
+
+
+def check_values(x, bad, name: str, expected: str):
+    """Reject the entries of `x` where `bad(x)` holds (a parameter-range check).
+
+    Concrete `x`: `ValueError` "`name` must be {expected}, got {value}".
+    Traced `x`: `equinox.error_if` with the same message; the returned
+    array carries the check and must be used in place of `x`.
+    """
+    if is_traced(x):
+        return eqx.error_if(x, jnp.any(bad(x)), f"`{name}` must be {expected}")
+    mask = np.asarray(bad(x))
+    if np.any(mask):
+        v = np.asarray(x, dtype=np.float64)
+        shown = v[()] if v.ndim == 0 else v[np.broadcast_to(mask, v.shape)].ravel()[:4]
+        text = f"{shown:.6g}" if v.ndim == 0 else np.array2string(shown, precision=6)
+        raise ValueError(f"`{name}` must be {expected}, got {text}")
+    return x
+
+
+def check_finite(x, name: str):
+    """NaN and inf are errors (concrete: ValueError; traced: error_if)."""
+    return check_values(x, lambda a: ~jnp.isfinite(a), name, "finite (no NaN or inf)")
 
 
 def check_lmax(lmax, name: str = "lmax") -> int:
@@ -45,10 +131,25 @@ def check_lmax(lmax, name: str = "lmax") -> int:
 
 
 def check_dirs(dirs, name: str = "dirs"):
-    """Directions: a float array of shape (..., 3)."""
+    """Directions: a float array of shape (..., 3) (values not checked)."""
     dirs = as_float_array(dirs, name)
     if dirs.ndim < 1 or dirs.shape[-1] != 3:
         raise ValueError(f"`{name}` must have shape (..., 3), got {tuple(dirs.shape)}")
+    return dirs
+
+
+def check_nonzero_dirs(dirs, name: str = "dirs"):
+    """Directions the caller normalizes: shape (..., 3), finite and non-zero.
+
+    Concrete input with a zero-length or non-finite direction is a
+    `ValueError` here; traced input is checked at run time by the kernel
+    (`_sh._unit_vectors`).
+    """
+    dirs = check_dirs(dirs, name)
+    if not is_traced(dirs):
+        n2 = jnp.sum(dirs * dirs, axis=-1)
+        if not bool(jnp.all(jnp.isfinite(n2) & (n2 > 0))):
+            raise ValueError(f"`{name}` contains a zero-length or non-finite direction (directions are normalized, so they must be finite and non-zero)")
     return dirs
 
 

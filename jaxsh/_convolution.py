@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact, Num, Real
 
-from ._checks import as_float_array, check_dirs, check_lmax, coeff_layout
+from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, coeff_layout
 from ._indexing import real_to_complex_matrix, sh_degrees
 from ._sh import _real_sh_flat, _unit_vectors
 from ._spectra import lambertian_spectrum
@@ -39,11 +39,10 @@ def convolve(
     - `A`: spectrum `(..., lmax_A + 1)` with `lmax_A ≥ lmax`; batch dims broadcast.
     - `channels`: see `rotate_sh` (layout inference).
 
-    **Returns:** the filtered coefficients, same layout.
+    **Returns:** the filtered coefficients, same layout. NaN in, NaN out
+    (a pure array kernel, see `jaxsh._checks`).
     """
-    coeffs = jnp.asarray(coeffs)
-    if not jnp.issubdtype(coeffs.dtype, jnp.inexact):
-        coeffs = as_float_array(coeffs, "coeffs")
+    coeffs = as_float_array(coeffs, "coeffs", complex_ok=True)
     A = as_float_array(A, "A")
     lmax, axis = coeff_layout(coeffs.shape, "coeffs", channels)
     if A.ndim < 1 or A.shape[-1] < lmax + 1:
@@ -75,15 +74,16 @@ def irradiance(coeffs: Real[ArrayLike, "n_coeffs *C"], normals: Real[ArrayLike, 
     **Arguments:**
 
     - `coeffs`: real SH lighting `(n_coeffs,)` or `(n_coeffs, C)`.
-    - `normals`: `(..., 3)` (normalized here).
+    - `normals`: `(..., 3)` (normalized here, so their length does not
+      matter; a zero-length or non-finite normal is an error at run time).
 
-    **Returns:** `(...)` or `(..., C)`.
+    **Returns:** `(...)` or `(..., C)`. NaN in `coeffs` propagates.
     """
     coeffs = as_float_array(coeffs, "coeffs")
     if coeffs.ndim not in (1, 2):
         raise ValueError(f"`coeffs` must have shape (n_coeffs,) or (n_coeffs, C), got {tuple(coeffs.shape)}")
     lmax, _ = coeff_layout(coeffs.shape, "coeffs", channels=coeffs.ndim == 2)
-    normals = check_dirs(normals, "normals")
+    normals = check_nonzero_dirs(normals, "normals")
     dt = jnp.result_type(coeffs.dtype, normals.dtype)
     return _irradiance(coeffs.astype(dt), normals.astype(dt), lmax)
 

@@ -1,6 +1,6 @@
 """Sampling grids on the sphere, with quadrature weights.
 
-Conventions (DESIGN.md): polar angle θ from +z, azimuth φ from +x towards +y.
+Conventions (docs/conventions.md): polar angle θ from +z, azimuth φ from +x towards +y.
 
 | grid | rows (θ) | columns (φ) | exact for |
 |---|---|---|---|
@@ -9,7 +9,8 @@ Conventions (DESIGN.md): polar angle θ from +z, azimuth φ from +x towards +y.
 | angular map, S×S | Debevec light-probe layout, see `angular_map_directions` | | pixel-centre rule |
 
 Sizes are static Python ints; every grid is built in NumPy float64 at trace
-time and returned in `dtype` (default: JAX's default float).
+time and returned in `dtype` (default: JAX's default float; float32 or
+float64, float16 is a `ValueError` — see `jaxsh._checks`).
 """
 
 from __future__ import annotations
@@ -18,11 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._checks import check_positive_int
+from ._checks import check_dtype, check_positive_int
 
 
 def _out(x, dtype):
-    return jnp.asarray(x, dtype=jnp.result_type(float) if dtype is None else dtype)
+    return jnp.asarray(x, dtype=check_dtype(dtype))
 
 
 def latlong_angles(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:

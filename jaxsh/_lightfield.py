@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array, check_lmax, check_positive_int
+from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, lmax_from_size
 from ._indexing import sh_degrees, sh_lambda, sh_orders
 from ._rotation import wigner_d_y
 from ._sh import complex_sh
@@ -52,7 +52,7 @@ def _expi(a):
 
 
 def _default_dtype(dtype):
-    return jnp.result_type(float) if dtype is None else dtype
+    return check_dtype(dtype)
 
 
 def _zonal_table(theta, lmax, dtype):
@@ -146,8 +146,10 @@ def light_field_coefficients(
     expansion), `(n_coeffs,)`; `rho`: `(lmax+1, lmax+1, lmax+1)` from
     `brdf_sh_coefficients`. Returns `B[(l, m), p, q + lmax]`.
     """
-    L = jnp.asarray(L)
-    rho = jnp.asarray(rho)
+    L = as_float_array(L, "L", complex_ok=True)
+    rho = as_float_array(rho, "rho")
+    if rho.ndim != 3:
+        raise ValueError(f"`rho` must have shape (lmax+1, lmax+1, lmax+1), got {tuple(rho.shape)}")
     lmax = rho.shape[0] - 1
     if rho.shape != (lmax + 1,) * 3:
         raise ValueError(f"`rho` must have shape (lmax+1, lmax+1, lmax+1), got {tuple(rho.shape)}")
@@ -200,7 +202,9 @@ def factorize_light_field(Bt: Complex[ArrayLike, "n_coeffs p q2"]):
     Requires $\\tilde B_{00l0} \\ne 0$ and, for each l, some $L_{lm}\\ne 0$ — the
     paper's condition; orders that violate it come back as NaN, visibly.
     """
-    Bt = jnp.asarray(Bt)
+    Bt = as_float_array(Bt, "Bt", complex_ok=True)
+    if Bt.ndim != 3:
+        raise ValueError(f"`Bt` must have shape (n_coeffs, lmax+1, 2 lmax+1), got {tuple(Bt.shape)}")
     n, p1, q2 = Bt.shape
     lmax = p1 - 1
     if n != (lmax + 1) ** 2 or q2 != 2 * lmax + 1:
@@ -236,12 +240,11 @@ def reflect_sh(
     `L` complex lighting coefficients of the same lmax. Exact for lighting
     band-limited to lmax. Returns the real radiance.
     """
-    L = jnp.asarray(L)
-    rho_i = jnp.asarray(rho_i)
-    n = L.shape[0]
-    if L.ndim != 1 or rho_i.shape != (n,):
+    L = as_float_array(L, "L", complex_ok=True)
+    rho_i = as_float_array(rho_i, "rho_i")
+    if L.ndim != 1 or rho_i.shape != L.shape:
         raise ValueError(f"`L` and `rho_i` must both have shape (n_coeffs,), got {L.shape} and {rho_i.shape}")
-    lmax = int(round(np.sqrt(n))) - 1
+    lmax = lmax_from_size(L.shape[0], "L")
     alpha = as_float_array(alpha, "alpha")
     ms = sh_orders(lmax)
     d = wigner_d_y(alpha, lmax).astype(L.dtype)  # d[(l,m),(l,q)]

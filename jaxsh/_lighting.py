@@ -23,11 +23,21 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 from ._custom_types import ScalarLike, SequenceLike
 
-from ._checks import as_float_array, check_dirs, check_lmax
+from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_values, coeff_layout
 from ._convolution import convolve
 from ._indexing import sh_degrees
 from ._sh import _real_sh_flat, _unit_vectors
 from ._spectra import legendre_p, microfacet_spectrum
+
+
+def _non_negative(x, name: str):
+    """Energy / radiance ≥ 0 and not +inf; NaN propagates (see `jaxsh._checks`)."""
+    return check_values(x, lambda a: (a < 0) | (a == jnp.inf), name, "finite and >= 0")
+
+
+def _check_radius(r, name: str = "angular_radius"):
+    """A disk's angular radius in (0, π]; NaN propagates."""
+    return check_values(r, lambda a: (a <= 0) | (a > jnp.pi), name, "in (0, pi] (radians)")
 
 
 def _energy(energy, n_sources: int, name: str):
@@ -36,16 +46,19 @@ def _energy(energy, n_sources: int, name: str):
         energy = energy[:, None]
     if energy.ndim != 2 or energy.shape[0] != n_sources:
         raise ValueError(f"`{name}` must have shape ({n_sources},) or ({n_sources}, C), got {tuple(energy.shape)}")
-    return energy
+    return _non_negative(energy, name)
 
 
 def directional_light_sh(directions: Real[ArrayLike, "J 3"] | SequenceLike, energy: Real[ArrayLike, "J *C"] | SequenceLike, lmax: int) -> Float[Array, "n_coeffs C"]:
     """SH coefficients of delta sources: $L_{lm} = \\sum_j L_j Y_{lm}(\\omega_j)$ (R&H sec. 5.2).
 
-    **Arguments:** `directions` `(J, 3)`; `energy` `(J,)` or `(J, C)`; `lmax`.
-    **Returns:** `(n_coeffs, C)`.
+    **Arguments:** `directions` `(J, 3)`, towards the lights (normalized
+    here; a zero or non-finite direction is an error); `energy` `(J,)` or
+    `(J, C)`, ≥ 0 (a negative or infinite energy is an error: `ValueError`,
+    or a run-time error under `jit`); `lmax` ≥ 0.
+    **Returns:** `(n_coeffs, C)`. NaN in `energy` propagates.
     """
-    directions = check_dirs(directions, "directions")
+    directions = check_nonzero_dirs(directions, "directions")
     if directions.ndim != 2:
         raise ValueError(f"`directions` must have shape (J, 3), got {tuple(directions.shape)}")
     lmax = check_lmax(lmax)
@@ -64,13 +77,27 @@ def disk_light_sh(
     ($l \\ge 1$; $L^z_0 = \\mathrm{rad}\\,2\\pi(1-\\cos r)/\\sqrt{4\\pi}$), and a zonal
     function rotated to axis $d$ has $L_{lm} = \\Lambda_l L^z_l Y_{lm}(d)$.
     Differentiable in the direction, radius and radiance.
+
+    **Arguments:** `direction` `(3,)`, the disk's centre (normalized here; a
+    zero or non-finite direction is an error); `angular_radius` scalar in
+    $(0, \\pi]$ ($\\pi$: the whole sphere); `radiance` scalar or `(C,)`, ≥ 0;
+    `lmax` ≥ 0. An out-of-range radius or radiance is an error
+    (`ValueError`, or a run-time error under `jit`); NaN propagates.
+
+    **Returns:** `(n_coeffs,)` for a scalar radiance, else `(n_coeffs, C)`.
     """
-    direction = check_dirs(direction, "direction")
+    direction = check_nonzero_dirs(direction, "direction")
     if direction.shape != (3,):
         raise ValueError(f"`direction` must have shape (3,), got {tuple(direction.shape)}")
     r = as_float_array(angular_radius, "angular_radius")
     rad = as_float_array(radiance, "radiance")
+    if r.shape != ():
+        raise ValueError(f"`angular_radius` must be a scalar (shape ()), got shape {tuple(r.shape)}")
+    if rad.ndim > 1:
+        raise ValueError(f"`radiance` must be a scalar or have shape (C,), got shape {tuple(rad.shape)}")
     lmax = check_lmax(lmax)
+    r = _check_radius(r)
+    rad = _non_negative(rad, "radiance")
     dt = jnp.result_type(direction.dtype, r.dtype, rad.dtype)
     u = jnp.cos(r).astype(dt)
     p = legendre_p(u, lmax + 1)  # P_0 .. P_{lmax+1}
@@ -87,9 +114,14 @@ def disk_light_sh(
 
 
 def disk_energy(angular_radius, radiance):
-    """Total energy of a disk source: $2\\pi(1-\\cos r)$ × radiance."""
-    r = as_float_array(angular_radius, "angular_radius")
-    return 2 * jnp.pi * (1 - jnp.cos(r)) * as_float_array(radiance, "radiance")
+    """Total energy of a disk source: $2\\pi(1-\\cos r)$ × radiance.
+
+    `angular_radius` in $(0, \\pi]$, `radiance` ≥ 0 (broadcast); out-of-range
+    values are an error, NaN propagates.
+    """
+    r = _check_radius(as_float_array(angular_radius, "angular_radius"))
+    rad = _non_negative(as_float_array(radiance, "radiance"), "radiance")
+    return 2 * jnp.pi * (1 - jnp.cos(r)) * rad
 
 
 def is_fast_source(angular_radius, sigma, ratio: float = 0.25):
@@ -98,9 +130,15 @@ def is_fast_source(angular_radius, sigma, ratio: float = 0.25):
 
 
 def filter_lighting_microfacet(coeffs: Real[ArrayLike, "n_coeffs *C"], sigma: Real[ArrayLike, ""]) -> Float[Array, "n_coeffs *C"]:
-    """$L^{slow}_{lm} = e^{-(\\sigma l)^2} L_{lm}$: the lighting a microfacet lobe sees (R&H eqs. 17, 20, 22)."""
+    """$L^{slow}_{lm} = e^{-(\\sigma l)^2} L_{lm}$: the lighting a microfacet lobe sees (R&H eqs. 17, 20, 22).
+
+    `coeffs` `(n_coeffs,)` or `(n_coeffs, C)`; `sigma` > 0 (σ ≤ 0 is an
+    error: `ValueError`, or a run-time error under `jit`). NaN in, NaN out.
+    """
     coeffs = as_float_array(coeffs, "coeffs")
-    lmax = int(round(np.sqrt(coeffs.shape[0]))) - 1
+    if coeffs.ndim not in (1, 2):
+        raise ValueError(f"`coeffs` must have shape (n_coeffs,) or (n_coeffs, C), got {tuple(coeffs.shape)}")
+    lmax, _ = coeff_layout(coeffs.shape, "coeffs", channels=coeffs.ndim == 2)
     a = microfacet_spectrum(as_float_array(sigma, "sigma"), lmax)
     return convolve(coeffs, a, channels=coeffs.ndim == 2)
 

@@ -14,10 +14,16 @@ computes $E$, $P_l$, $\\cos\\theta_o$ and $\\theta_{h,j}$ once; evaluating the
 model for new $(K_d, K_s, \\mu, \\sigma)$ then costs $O(N\\,l_{max})$ and no SH
 evaluation, which is what the BRDF solvers of sec. 6.1 need inside their
 simplex and Levenberg–Marquardt loops. It equals `render_practical` (same
-conventions, same visibility terms, exact diffuse term of fast sources).
+conventions, same visibility terms, exact diffuse term of fast sources):
+`render_practical` is `practical_terms(...).components(brdf)` reshaped to the
+image, so eq. 24 is written once, here: `_eq24_terms` (the per-pixel terms)
+and `PracticalTerms.components` (their combination with the BRDF).
 """
 
+
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -26,11 +32,29 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array, check_dirs
+from ._checks import check_dirs, check_positive_int
 from ._indexing import sh_degrees
-from ._reflectance import fresnel_normalized, half_angle, reflect
+from ._model import Lighting, TorranceSparrow
+from ._reflectance import _half_angle, fresnel_normalized, reflect
 from ._sh import _real_sh_flat, _unit_vectors
 from ._spectra import lambertian_spectrum, microfacet_spectrum
+
+_LIGHT_KW = ("slow_sh", "fast_directions", "fast_energy")
+
+
+class Components(NamedTuple):
+    """The three terms of R&H eq. 24 and their sum, each `(..., C)`."""
+
+    diffuse: Array
+    specular_slow: Array
+    specular_fast: Array
+    total: Array
+
+
+def _rows(x, dt):
+    """A `(C,)` / `(N, C)` parameter as a 2-D `(1 or N, C)` array (no rank promotion)."""
+    x = jnp.asarray(x, dt)
+    return x.reshape((1,) * (2 - x.ndim) + x.shape)
 
 
 class PracticalTerms(eqx.Module):
@@ -41,14 +65,17 @@ class PracticalTerms(eqx.Module):
     - `visible`: `(N,)` bool, $\\cos\\theta_o > 0$.
     - `cos_o`: `(N,)` $\\cos\\theta_o$ (1 where not visible).
     - `irradiance`: `(N, C)` $E$: the 9-term (or transfer-vector) irradiance of
-      the slow lighting plus the exact shadowed cosine of the fast sources.
+      the slow lighting plus the shadowed cosine of the fast sources (exact,
+      or their 9-term irradiance with `exact_fast_diffuse=False`).
     - `bands`: `(N, lmax+1, C)` $P_l(R)$, reflected-ray visibility included.
-    - `theta_h`: `(N, J)` half-angle of each fast source.
+    - `theta_h`: `(N, J)` half-angle of each fast source (`jaxsh.half_angle`).
     - `fast_weight`: `(N, J)` $V_j\\,[\\cos\\theta_{i,j} > 0]$.
     - `fast_energy`: `(J, C)` $L_j$.
 
-    Call it as `terms(kd, ks, mu, sigma)` for `B` `(N, C)`; `kd`, `ks` are
-    `(C,)` or per-pixel `(N, C)`; `mu=None` means $F = 1$.
+    Call it as `terms(brdf)` with a `jaxsh.TorranceSparrow`, or as
+    `terms(kd, ks, mu, sigma)`, for `B` `(N, C)`; `kd`, `ks` are `(C,)` or
+    per-pixel `(N, C)`; `mu=None` means $F = 1$. `terms.components(...)`
+    gives the three terms of eq. 24 (what `render_practical` returns).
     """
 
     visible: Bool[Array, " N"]
@@ -69,109 +96,47 @@ class PracticalTerms(eqx.Module):
             return jnp.ones_like(self.cos_o)
         return fresnel_normalized(self.cos_o, jnp.asarray(mu, self.cos_o.dtype))
 
-    def specular_unit(self, mu, sigma):
-        """The bracket of eq. 24 times $F$: the radiance for $K_s = 1$, `(N, C)`."""
+    def _specular(self, mu, sigma):
+        """$F L_{slow}(R)$ and $F/(4\\cos\\theta_o)\\sum_j T_j(\\sigma)$ of eq. 24 for $K_s = 1$, each `(N, C)`."""
         dt = self.cos_o.dtype
         sigma = jnp.asarray(sigma, dt)
-        filt = microfacet_spectrum(sigma, self.lmax)  # (L+1,)
-        slow = jnp.einsum("nlc,l->nc", self.bands, filt)
-        tj = jnp.exp(-((self.theta_h / sigma) ** 2)) / (jnp.pi * sigma**2) * self.fast_weight
+        filt = microfacet_spectrum(sigma, self.lmax)  # (L+1,), eq. 20
+        slow = jnp.einsum("nlc,l->nc", self.bands, filt)  # eq. 22
+        tj = jnp.exp(-((self.theta_h / sigma) ** 2)) / (jnp.pi * sigma**2) * self.fast_weight  # eq. 23
         fast = (tj @ self.fast_energy) / (4 * self.cos_o)[:, None]
-        spec = self.fresnel(mu)[:, None] * (slow + fast)
-        return jnp.where(self.visible[:, None], spec, 0.0)
+        f = self.fresnel(mu)[:, None]
+        vis = self.visible[:, None]
+        return jnp.where(vis, f * slow, 0.0), jnp.where(vis, f * fast, 0.0)
+
+    def specular_unit(self, mu, sigma):
+        """The bracket of eq. 24 times $F$: the radiance for $K_s = 1$, `(N, C)`."""
+        slow, fast = self._specular(mu, sigma)
+        return slow + fast
 
     def diffuse_unit(self):
         """$E$ for $K_d = 1$, `(N, C)` (0 where not visible)."""
         return jnp.where(self.visible[:, None], self.irradiance, 0.0)
 
-    def __call__(self, kd, ks, mu, sigma) -> Float[Array, "N C"]:
+    def components(self, kd, ks=None, mu=None, sigma=None) -> Components:
+        """The terms of eq. 24 for a BRDF (`TorranceSparrow`, or `kd, ks, mu, sigma`), each `(N, C)`."""
+        if isinstance(kd, TorranceSparrow):
+            kd, ks, mu, sigma = kd.kd, kd.ks, kd.mu, kd.sigma
+        elif ks is None or sigma is None:
+            raise TypeError("give a TorranceSparrow, or kd, ks, mu and sigma")
         dt = self.cos_o.dtype
-        kd, ks = jnp.asarray(kd, dt), jnp.asarray(ks, dt)
-        kd = kd.reshape((1,) * (2 - kd.ndim) + kd.shape)
-        ks = ks.reshape((1,) * (2 - ks.ndim) + ks.shape)
-        return kd * self.diffuse_unit() + ks * self.specular_unit(mu, sigma)
+        kd, ks = _rows(kd, dt), _rows(ks, dt)
+        slow, fast = self._specular(mu, sigma)
+        parts = (kd * self.diffuse_unit(), ks * slow, ks * fast)
+        shape = jnp.broadcast_shapes(*(p.shape for p in parts))
+        d, s, f = (jnp.broadcast_to(p, shape) for p in parts)
+        return Components(d, s, f, d + s + f)
+
+    def __call__(self, kd, ks=None, mu=None, sigma=None) -> Float[Array, "N C"]:
+        return self.components(kd, ks, mu, sigma).total
 
 
-def practical_terms(
-    normals: Real[ArrayLike, "N 3"],
-    views: Real[ArrayLike, "N 3"],
-    *,
-    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
-    fast_directions: Real[ArrayLike, "J 3"] | SequenceLike | None = None,
-    fast_energy: Real[ArrayLike, "J C"] | SequenceLike | None = None,
-    transfer: Real[ArrayLike, "N 9"] | None = None,
-    fast_visibility: Real[ArrayLike, "N J"] | None = None,
-    reflected_visibility: Real[ArrayLike, " N"] | None = None,
-    chunk: int = 8192,
-) -> PracticalTerms:
-    """Precompute the terms of R&H eq. 24 for `N` pixels (module docstring).
-
-    **Arguments:** as `render_practical`, for flat `(N, 3)` pixel arrays (the
-    samples of one or several views); at least one of `slow_sh` and
-    `fast_directions` + `fast_energy`. `chunk` bounds the memory of the SH
-    evaluation (`chunk × n_coeffs`).
-
-    **Returns:** a `PracticalTerms`; `terms(kd, ks, mu, sigma)` equals
-    `render_practical(normals, views, kd, ks, mu, sigma, ...).total`.
-    """
-    n = check_dirs(normals, "normals")
-    v = check_dirs(views, "views")
-    if n.ndim != 2 or v.shape != n.shape:
-        raise ValueError(f"`normals` and `views` must both have shape (N, 3), got {tuple(n.shape)} and {tuple(v.shape)}")
-    npx = n.shape[0]
-    dt = jnp.result_type(n.dtype, v.dtype)
-    if slow_sh is None and fast_directions is None:
-        raise ValueError("give the lighting: `slow_sh` and/or `fast_directions` with `fast_energy`")
-    if (fast_directions is None) != (fast_energy is None):
-        raise ValueError("`fast_directions` and `fast_energy` go together")
-    c = None
-    if slow_sh is not None:
-        slow_sh = as_float_array(slow_sh, "slow_sh")
-        if slow_sh.ndim == 1:
-            slow_sh = slow_sh[:, None]
-        nc = slow_sh.shape[0] if slow_sh.ndim == 2 else -1
-        if slow_sh.ndim != 2 or nc < 1 or int(round(np.sqrt(nc))) ** 2 != nc:
-            raise ValueError(f"`slow_sh` must have shape (n_coeffs, C), got {tuple(slow_sh.shape)}")
-        c = slow_sh.shape[1]
-    if fast_directions is not None:
-        fast_directions = check_dirs(fast_directions, "fast_directions")
-        if fast_directions.ndim != 2:
-            raise ValueError(f"`fast_directions` must have shape (J, 3), got {tuple(fast_directions.shape)}")
-        fast_energy = as_float_array(fast_energy, "fast_energy")
-        if fast_energy.ndim == 1:
-            fast_energy = fast_energy[:, None]
-        if fast_energy.ndim != 2 or fast_energy.shape[0] != fast_directions.shape[0]:
-            raise ValueError(
-                f"`fast_energy` must have shape ({fast_directions.shape[0]}, C), got {tuple(fast_energy.shape)}"
-            )
-        if c is not None and fast_energy.shape[1] not in (1, c) and c != 1:
-            raise ValueError(f"`fast_energy` has {fast_energy.shape[1]} channels but `slow_sh` has {c}")
-        c = max(c or 1, fast_energy.shape[1])
-    for name, arr, shape in (
-        ("transfer", transfer, (npx, 9)),
-        ("fast_visibility", fast_visibility, (npx, 0 if fast_directions is None else fast_directions.shape[0])),
-        ("reflected_visibility", reflected_visibility, (npx,)),
-    ):
-        if arr is not None and tuple(jnp.shape(arr)) != shape:
-            raise ValueError(f"`{name}` must have shape {shape}, got {tuple(jnp.shape(arr))}")
-    if transfer is not None and slow_sh is None:
-        raise ValueError("`transfer` needs `slow_sh`")
-    chunk = int(chunk)
-    if chunk < 1:
-        raise ValueError(f"`chunk` must be a positive int, got {chunk}")
-    return _practical_terms(
-        n.astype(dt), v.astype(dt), None if slow_sh is None else jnp.broadcast_to(slow_sh.astype(dt), (slow_sh.shape[0], c)),
-        None if fast_directions is None else fast_directions.astype(dt),
-        None if fast_energy is None else jnp.broadcast_to(fast_energy.astype(dt), (fast_energy.shape[0], c)),
-        None if transfer is None else jnp.asarray(transfer, dt),
-        None if fast_visibility is None else jnp.asarray(fast_visibility, dt),
-        None if reflected_visibility is None else jnp.asarray(reflected_visibility, dt),
-        c, chunk,
-    )
-
-
-def _bands_chunked(dirs, coeffs, lmax: int, chunk: int):
-    """$P_l = \\sum_m c_{lm} Y_{lm}$ per band at (N, 3) unit directions: (N, lmax+1, C)."""
+def _sh_bands(dirs, coeffs, lmax: int, chunk: int):
+    """$P_l = \\sum_m c_{lm} Y_{lm}$ per band at (N, 3) unit directions: (N, lmax+1, C), in pixel chunks."""
 
     def one(x):
         y = _real_sh_flat(x, lmax)  # (n, nc)
@@ -183,15 +148,21 @@ def _bands_chunked(dirs, coeffs, lmax: int, chunk: int):
     if npx <= chunk:
         return one(dirs)
     pad = (-npx) % chunk
-    d = jnp.pad(dirs, ((0, pad), (0, 0))).at[npx:, 2].set(1.0)
+    d = jnp.pad(dirs, ((0, pad), (0, 0))).at[npx:, 2].set(1.0)  # padding rows: +z, a valid direction
     out = jax.lax.map(one, d.reshape(-1, chunk, 3))
     return out.reshape((-1,) + out.shape[2:])[:npx]
 
 
-@eqx.filter_jit
-def _practical_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, c: int, chunk: int):
+def _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse: bool, chunk: int) -> PracticalTerms:
+    """THE kernel of R&H eq. 24: the per-pixel terms at flat `(N, 3)` normals / views.
+
+    Inputs are validated and cast (`_prepare_lighting`, `_prepare_visibility`):
+    `slow_sh` `(n_coeffs, C)`, `fdir` `(J, 3)`, `fen` `(J, C)` or None;
+    `transfer` `(N, k)`, `fvis` `(N, J)`, `rvis` `(N,)` or None.
+    """
     dt = n.dtype
     npx = n.shape[0]
+    c = (slow_sh if slow_sh is not None else fen).shape[1]
     n = _unit_vectors(n, "normals")
     v = _unit_vectors(v, "views")
     cos_o = jnp.sum(n * v, -1)
@@ -199,30 +170,163 @@ def _practical_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, c: int, chu
     cos_o = jnp.where(visible, cos_o, 1.0)
     irr = jnp.zeros((npx, c), dt)
     if slow_sh is not None:
+        # Slow lighting: 9-term irradiance (eq. 21) and its bands at the mirror direction (eq. 22).
         lmax = int(round(np.sqrt(slow_sh.shape[0]))) - 1
         l2 = min(lmax, 2)
+        k = (l2 + 1) ** 2
         if transfer is not None:
-            irr = irr + transfer[:, : (l2 + 1) ** 2] @ slow_sh[: (l2 + 1) ** 2]
+            irr = irr + transfer[:, :k] @ slow_sh[:k]
         else:
             a = lambertian_spectrum(l2, dt)[sh_degrees(l2)]
-            irr = irr + _real_sh_flat(n, l2) @ (slow_sh[: (l2 + 1) ** 2] * a[:, None])
+            irr = irr + _real_sh_flat(n, l2) @ (slow_sh[:k] * a[:, None])
         r = _unit_vectors(reflect(v, n))
-        bands = _bands_chunked(r, slow_sh, lmax, chunk)
+        bands = _sh_bands(r, slow_sh, lmax, chunk)
         if rvis is not None:
             bands = bands * rvis[:, None, None]
     else:
         bands = jnp.zeros((npx, 1, c), dt)
     if fdir is not None:
+        # Fast sources: eq. 23 (half angles) and their diffuse term.
         d = _unit_vectors(fdir)
-        cos_i = n @ d.T
+        cos_i = n @ d.T  # (N, J)
         lit = cos_i > 0
         vis = jnp.ones_like(cos_i) if fvis is None else fvis
         weight = jnp.where(lit, vis, 0.0)
-        theta_h = half_angle(d[None, :, :], v[:, None, :], n[:, None, :])
-        irr = irr + (jnp.where(lit, cos_i, 0.0) * vis) @ fen
+        theta_h = _half_angle(d[None, :, :], v[:, None, :], n[:, None, :])
+        if exact_fast_diffuse:
+            irr = irr + (jnp.where(lit, cos_i, 0.0) * vis) @ fen
+        else:  # the letter of eq. 21: the fast sources' 9-term irradiance (unshadowed)
+            a = lambertian_spectrum(2, dt)[sh_degrees(2)]
+            irr = irr + _real_sh_flat(n, 2) @ ((_real_sh_flat(d, 2) * a[None, :]).T @ fen)
         energy = fen
     else:
         theta_h = jnp.zeros((npx, 0), dt)
         weight = jnp.zeros((npx, 0), dt)
         energy = jnp.zeros((0, c), dt)
     return PracticalTerms(visible, cos_o, irr, bands, theta_h, weight, energy)
+
+
+def practical_lighting(lighting, light_kw: dict) -> Lighting:
+    """The `Lighting` of a practical-model call: `lighting`, or one built from the keyword form."""
+    given = {k: x for k, x in light_kw.items() if x is not None}
+    if lighting is None:
+        if not given:
+            raise ValueError("give the lighting: a `jaxsh.Lighting`, or `slow_sh` and/or `fast_directions` with `fast_energy`")
+        lighting = Lighting(**given)
+    elif given:
+        raise TypeError(f"give the lighting either as a `Lighting` or as keywords, not both ({sorted(given)})")
+    if not isinstance(lighting, Lighting):
+        raise ValueError(f"`lighting` must be a jaxsh.Lighting, got {type(lighting).__name__}")
+    if lighting.has_disks:
+        raise ValueError(
+            "`lighting` has disk sources: the practical model needs the slow/fast split of R&H sec. 5.3 first, "
+            "`lighting.split_disks(sigma, lmax)` (or `jaxsh.split_disk_sources`)"
+        )
+    return lighting
+
+
+def _prepare_lighting(lighting: Lighting, dt):
+    """`(slow_sh (n, C), fast_directions (J, 3), fast_energy (J, C))` in dtype `dt`, channels broadcast."""
+    c = lighting.n_channels
+    slow = None if lighting.slow_sh is None else jnp.broadcast_to(lighting.slow_sh.astype(dt), (lighting.slow_sh.shape[0], c))
+    if lighting.fast_directions is None:
+        return slow, None, None
+    fen = jnp.broadcast_to(lighting.fast_energy.astype(dt), (lighting.fast_energy.shape[0], c))
+    return slow, lighting.fast_directions.astype(dt), fen
+
+
+def _broadcasts_to(shape, want) -> bool:
+    try:
+        return jnp.broadcast_shapes(tuple(shape), tuple(want)) == tuple(want)
+    except ValueError:
+        return False
+
+
+def _broadcast_to_batch(x, batch, core, name, dt):
+    """`x` of shape `(..., *core)` broadcast to `batch + core` and flattened to `(N, *core)`."""
+    x = jnp.asarray(x)
+    want = tuple(batch) + tuple(core)
+    if x.ndim < len(core) or x.shape[x.ndim - len(core):] != tuple(core) or not _broadcasts_to(x.shape, want):
+        raise ValueError(f"`{name}` must have shape {want}, got {tuple(x.shape)}")
+    return jnp.broadcast_to(x.astype(dt), want).reshape((-1,) + tuple(core))
+
+
+def _prepare_visibility(lighting: Lighting, batch, transfer, fast_visibility, reflected_visibility, dt, strict: bool):
+    """The visibility terms of R&H sec. 6.4, checked against `batch` and flattened to `(N, ...)`.
+
+    A term whose lighting part is absent is dropped (`strict=False`,
+    `render_practical`) or is an error (`strict=True`, `practical_terms`).
+    """
+
+    if lighting.slow_sh is None:
+        if strict and transfer is not None:
+            raise ValueError("`transfer` needs `slow_sh`")
+        if strict and reflected_visibility is not None and not _broadcasts_to(jnp.shape(reflected_visibility), batch):
+            raise ValueError(f"`reflected_visibility` must have shape {tuple(batch)}, got {tuple(jnp.shape(reflected_visibility))}")
+        transfer = reflected_visibility = None
+    j = 0 if lighting.fast_directions is None else lighting.fast_directions.shape[0]
+    if j == 0:
+        if strict and fast_visibility is not None and tuple(jnp.shape(fast_visibility)) != tuple(batch) + (0,):
+            raise ValueError(f"`fast_visibility` must have shape {tuple(batch) + (0,)}, got {tuple(jnp.shape(fast_visibility))}")
+        fast_visibility = None
+    if transfer is not None:
+        t = jnp.asarray(transfer)
+        k = (min(lighting.lmax, 2) + 1) ** 2
+        if t.ndim < 1 or t.shape[-1] < k:
+            raise ValueError(f"`transfer` must have shape {tuple(batch) + (9,)}, got {tuple(t.shape)}")
+        transfer = _broadcast_to_batch(t, batch, (t.shape[-1],), "transfer", dt)
+    if fast_visibility is not None:
+        fast_visibility = _broadcast_to_batch(fast_visibility, batch, (j,), "fast_visibility", dt)
+    if reflected_visibility is not None:
+        reflected_visibility = _broadcast_to_batch(reflected_visibility, batch, (), "reflected_visibility", dt)
+    return transfer, fast_visibility, reflected_visibility
+
+
+def practical_terms(
+    normals: Real[ArrayLike, "N 3"],
+    views: Real[ArrayLike, "N 3"],
+    lighting: Lighting | None = None,
+    *,
+    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
+    fast_directions: Real[ArrayLike, "J 3"] | SequenceLike | None = None,
+    fast_energy: Real[ArrayLike, "J C"] | SequenceLike | None = None,
+    transfer: Real[ArrayLike, "N 9"] | None = None,
+    fast_visibility: Real[ArrayLike, "N J"] | None = None,
+    reflected_visibility: Real[ArrayLike, " N"] | None = None,
+    exact_fast_diffuse: bool = True,
+    chunk: int = 8192,
+) -> PracticalTerms:
+    """Precompute the terms of R&H eq. 24 for `N` pixels (module docstring).
+
+    **Arguments:**
+
+    - `normals`, `views`: flat `(N, 3)` unit vectors (the samples of one or
+      several views).
+    - `lighting`: a `jaxsh.Lighting` with a slow and/or fast part (no disks:
+      `Lighting.split_disks` first). The keyword form `slow_sh=`,
+      `fast_directions=`, `fast_energy=` (as in `render_practical`) is the same.
+    - `transfer` `(N, 9)`, `fast_visibility` `(N, J)`, `reflected_visibility`
+      `(N,)`: the visibility terms of sec. 6.4, as in `render_practical`.
+    - `exact_fast_diffuse`: as in `render_practical`.
+    - `chunk` bounds the memory of the SH evaluation (`chunk × n_coeffs`).
+
+    **Returns:** a `PracticalTerms`; `terms(brdf)` equals
+    `render_practical(normals, views, brdf, lighting, ...).total`.
+    """
+    lighting = practical_lighting(
+        lighting, dict(slow_sh=slow_sh, fast_directions=fast_directions, fast_energy=fast_energy)
+    )
+    n = check_dirs(normals, "normals")
+    v = check_dirs(views, "views")
+    if n.ndim != 2 or v.shape != n.shape:
+        raise ValueError(f"`normals` and `views` must both have shape (N, 3), got {tuple(n.shape)} and {tuple(v.shape)}")
+    chunk = check_positive_int(chunk, "chunk")
+    dt = jnp.result_type(n.dtype, v.dtype)
+    slow, fdir, fen = _prepare_lighting(lighting, dt)
+    vis = _prepare_visibility(lighting, n.shape[:1], transfer, fast_visibility, reflected_visibility, dt, strict=True)
+    return _practical_terms(n.astype(dt), v.astype(dt), slow, fdir, fen, *vis, bool(exact_fast_diffuse), chunk)
+
+
+@eqx.filter_jit
+def _practical_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk):
+    return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk)

@@ -1,4 +1,4 @@
-"""Radial-basis-function reflectance representation (Zickler et al. 2006) — evaluation.
+"""Radial-basis-function reflectance representation (Zickler et al. 2006) — evaluation and the linear solve.
 
 The interpolant of Zickler 2006 eqs. 9, 11–13 with the linear kernel
 $\\psi(r) = r$ and a degree-1 polynomial,
@@ -13,8 +13,10 @@ coordinates (it spans the same space as one in the scaled coordinates).
 
 Layout: centres `(K, d)`, kernel weights `(K, C)`, polynomial coefficients
 `(d + 1, C)` (row 0 the constant, row $1 + k$ the coefficient of $q_k$) —
-channels last. Fitting (the saddle-point system of eq. 10) lives in
-`solvers.fit_sharing`; this module only evaluates.
+channels last. The saddle-point solve of eq. 10 for given centres is
+`rbf_fit` (all samples as centres) and `rbf_solve` (the padded,
+active-mask form used inside a jitted loop); greedy centre selection and
+the input checks on data (duplicates, degeneracy) are `solvers.fit_sharing`.
 
 **Cost and memory.** Evaluation at $M$ points is $O(M K d)$; the points are
 processed in chunks of `chunk` rows with `jax.lax.map`, so at most a
@@ -45,7 +47,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, Real
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
 from ._custom_types import SequenceLike
 
 from ._checks import as_float_array
@@ -55,8 +57,16 @@ from ._reflectance import _frame, _prepare, _rusinkiewicz_local, _to_local, _uvw
 _AUTO_BLOCK = 1 << 21
 
 
-def auto_chunk(n_centers: int) -> int:
-    """The default evaluation chunk for `n_centers` centres: ≈2M distances a block."""
+def rbf_auto_chunk(n_centers: int) -> int:
+    """The default evaluation chunk of `RBFModel` for `n_centers` centres (static).
+
+    The largest power of two, between 64 and 16384, with at most ≈2M
+    distances in a `(chunk, n_centers)` block.
+
+    **Arguments:** `n_centers`: Python int.
+
+    **Returns:** a Python int.
+    """
     c = max(64, min(16384, _AUTO_BLOCK // max(int(n_centers), 1)))
     return int(1 << (c.bit_length() - 1))  # a power of two
 
@@ -158,7 +168,8 @@ class RBFModel(eqx.Module):
     $$\\tilde f(\\vec q) = c_0 + \\sum_k c_k q_k + \\sum_i \\lambda_i\\,\\|M(\\vec q - \\vec q_i)\\|,\\quad
       M = \\mathrm{diag}(\\text{scale}).$$
 
-    Usually built by `solvers.fit_sharing`; can be built by hand.
+    Built by `rbf_fit` (interpolation), by `solvers.fit_sharing` (greedy
+    centres), or by hand.
 
     **Fields:**
 
@@ -169,7 +180,7 @@ class RBFModel(eqx.Module):
     - `channels`: static; `None` for a scalar function (calls return `(M,)`),
       else `C` (calls return `(M, C)`).
     - `chunk`: static evaluation chunk (rows of points per block); default
-      `auto_chunk(K)`.
+      `rbf_auto_chunk(K)`.
 
     Calling the model, `model(points)` with `points` `(M, d)` (or `(d,)`),
     returns `(M,)`/`(M, C)` (or `()`/`(C,)`). The call is jitted; the
@@ -215,7 +226,7 @@ class RBFModel(eqx.Module):
         self.weights = weights.astype(dt)
         self.poly = poly.astype(dt)
         self.scale = s.astype(dt)
-        self.chunk = auto_chunk(k) if chunk is None else int(chunk)
+        self.chunk = rbf_auto_chunk(k) if chunk is None else int(chunk)
         if self.chunk < 1:
             raise ValueError(f"`chunk` must be a positive int, got {chunk}")
 
@@ -274,6 +285,192 @@ def rbf_evaluate(
     **Returns:** `(M,)` or `(M, C)`.
     """
     return RBFModel(centers, weights, poly, scale, chunk)(points)
+
+
+# --------------------------------------------------------------------------- the saddle-point solve (eq. 10)
+
+
+def _poly_basis(x, shift, pscale):
+    """[1, (x - shift)/pscale] for x (B, d) -> (B, d + 1)."""
+    xh = (x - shift[None, :]) / pscale[None, :]
+    return jnp.concatenate([jnp.ones_like(xh[:, :1]), xh], axis=1)
+
+
+def _poly_normalization(lo, hi):
+    """Shift and half-width mapping the box [lo, hi] to [-1, 1] (unit half-width where lo == hi)."""
+    shift = 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo)
+    return shift, jnp.where(half > 0.0, half, jnp.ones_like(half))
+
+
+def _solve_saddle(centers, rhs, active, scale, smoothing, shift, pscale):
+    """Solve eq. 10 with Ψ − ρI for the active centres; inactive rows are decoupled (weight 0).
+
+    LU with partial pivoting on the full symmetric-indefinite matrix (one
+    factorization, all channels as right-hand sides). Returns kernel weights
+    (K, C) and polynomial coefficients (d+1, C) in the *raw* coordinates.
+    """
+    k, d = centers.shape
+    dt = centers.dtype
+    cs = centers * scale[None, :]
+    psi = _safe_sqrt(_sq_dist(cs, cs))
+    eye = jnp.eye(k, dtype=dt)
+    am = active.astype(dt)
+    outer = am[:, None] * am[None, :]
+    psi = psi * outer - smoothing * eye * am[None, :] + eye * (1.0 - am)[None, :]
+    p = _poly_basis(centers, shift, pscale) * am[:, None]
+    top = jnp.concatenate([psi, p], axis=1)
+    bottom = jnp.concatenate([p.T, jnp.zeros((d + 1, d + 1), dtype=dt)], axis=1)
+    a = jnp.concatenate([top, bottom], axis=0)
+    b = jnp.concatenate([rhs * am[:, None], jnp.zeros((d + 1, rhs.shape[1]), dtype=dt)], axis=0)
+    sol = jnp.linalg.solve(a, b)
+    lam = sol[:k]
+    ch = sol[k:]
+    # back to raw coordinates: c0 + Σ c_k (x_k - m_k)/s_k
+    lin = ch[1:] / pscale[:, None]
+    c0 = ch[0] - jnp.sum(lin * shift[:, None], axis=0)
+    poly = jnp.concatenate([c0[None, :], lin], axis=0)
+    return lam, poly
+
+
+def _solve_core(centers, values, active, scale, smoothing, lo, hi):
+    shift, pscale = _poly_normalization(lo, hi)
+    return _solve_saddle(centers, values, active, scale, smoothing, shift, pscale)
+
+
+_solve_jit = eqx.filter_jit(_solve_core)
+
+
+def _check_solve_inputs(centers, values, scale, smoothing):
+    centers = as_float_array(centers, "centers")
+    if centers.ndim != 2 or centers.shape[0] < 1:
+        raise ValueError(f"`centers` must have shape (K, d), got {tuple(centers.shape)}")
+    k, d = centers.shape
+    values = as_float_array(values, "values")
+    single = values.ndim == 1
+    if single:
+        values = values[:, None]
+    if values.ndim != 2 or values.shape[0] != k:
+        raise ValueError(f"`values` must have shape ({k},) or ({k}, C) to match `centers` {(k, d)}, got {tuple(values.shape)}")
+    dt = _widest(centers, values)
+    s = _check_scale(scale, d, dt).astype(dt)
+    rho = as_float_array(smoothing, "smoothing")
+    if rho.ndim != 0:
+        raise ValueError(f"`smoothing` must be a scalar, got shape {tuple(rho.shape)}")
+    return centers.astype(dt), values.astype(dt), s, rho.astype(dt), single
+
+
+def rbf_solve(
+    centers: Real[ArrayLike, "K d"],
+    values: Real[ArrayLike, "K *C"],
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
+    smoothing: float | Real[ArrayLike, ""] = 0.0,
+    active: Bool[ArrayLike, " K"] | None = None,
+    bounds: tuple[Real[ArrayLike, " d"], Real[ArrayLike, " d"]] | None = None,
+) -> tuple[Float[Array, "K *C"], Float[Array, "d1 *C"]]:
+    """Kernel weights and polynomial of the RBF of Zickler 2006 eqs. 9–13 through given centres (eq. 10).
+
+    Solves the saddle-point system of eq. 10 with the smoothing of sec. 5.1,
+
+    $$\\begin{bmatrix} \\Psi - \\rho I & P \\\\ P^\\top & 0 \\end{bmatrix}
+      \\begin{bmatrix} \\lambda \\\\ c \\end{bmatrix} = \\begin{bmatrix} g \\\\ 0 \\end{bmatrix},\\quad
+      \\Psi_{ij} = \\|M(\\vec q_i - \\vec q_j)\\|,\\; M = \\mathrm{diag}(\\text{scale}),$$
+
+    by **LU with partial pivoting of the full $(K + d + 1)^2$ matrix**
+    (`jnp.linalg.solve`): the linear kernel is only conditionally positive
+    definite ($\\Psi$ has one positive and $K - 1$ negative eigenvalues on
+    generic data), so Cholesky does not apply. One factorization serves all
+    channels. The polynomial block $P = [1, \\hat q]$ is built in
+    coordinates $\\hat q$ mapped from the box `bounds` $= (lo, hi)$ to
+    $[-1, 1]$ (for conditioning); the returned coefficients are in raw
+    coordinates.
+
+    **Padded form.** With `active` (bool `(K,)`), only the active rows are
+    centres: the inactive rows and columns of $\\Psi$ and $P$ are zeroed
+    and given a unit diagonal, so their weights are exactly 0 and the active
+    part is the system of the active centres alone. The shapes stay fixed
+    whatever the number of active centres, so a greedy selection loop can
+    call this inside one `jax.lax.while_loop` (see `solvers.fit_sharing`).
+
+    No value checks (jit-safe): repeated or affinely degenerate active
+    centres make the system singular and the result non-finite.
+
+    **Arguments:**
+
+    - `centers`: `(K, d)` centres $\\vec q_i$.
+    - `values`: `(K,)` or `(K, C)` values $g$ at the centres.
+    - `scale`: `(d,)` the diagonal of $M$ (eq. 11); default ones.
+    - `smoothing`: $\\rho \\ge 0$ (traced scalar).
+    - `active`: `(K,)` bool, default all `True`.
+    - `bounds`: `(lo, hi)`, each `(d,)`, the box of the polynomial
+      normalization; default the bounding box of `centers` (all rows).
+
+    **Returns:** `(weights, poly)`: `(K,)`/`(K, C)` kernel weights
+    $\\lambda$ and `(d + 1,)`/`(d + 1, C)` polynomial coefficients
+    $(c_0, c_1, \\dots, c_d)$ — the arguments of `RBFModel`/`rbf_evaluate`.
+    """
+    c, v, s, rho, single = _check_solve_inputs(centers, values, scale, smoothing)
+    k, d = c.shape
+    if active is None:
+        act = jnp.ones((k,), dtype=bool)
+    else:
+        act = jnp.asarray(active)
+        if act.shape != (k,) or act.dtype != jnp.bool_:
+            raise ValueError(f"`active` must be a bool array of shape ({k},), got {act.dtype} {tuple(act.shape)}")
+    if bounds is None:
+        lo, hi = jnp.min(c, axis=0), jnp.max(c, axis=0)
+    else:
+        try:
+            lo, hi = bounds
+        except (TypeError, ValueError):
+            raise ValueError("`bounds` must be a pair (lo, hi) of (d,) arrays") from None
+        lo, hi = as_float_array(lo, "bounds").astype(c.dtype), as_float_array(hi, "bounds").astype(c.dtype)
+        if lo.shape != (d,) or hi.shape != (d,):
+            raise ValueError(f"`bounds` must be a pair (lo, hi) of ({d},) arrays, got {tuple(lo.shape)} and {tuple(hi.shape)}")
+    lam, poly = _solve_jit(c, v, act, s, rho, lo, hi)
+    return (lam[:, 0], poly[:, 0]) if single else (lam, poly)
+
+
+def rbf_fit(
+    centers: Real[ArrayLike, "K d"],
+    values: Real[ArrayLike, "K *C"],
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
+    smoothing: float | Real[ArrayLike, ""] = 0.0,
+    chunk: int | None = None,
+) -> RBFModel:
+    """The RBF interpolant (or smoothing spline) of Zickler 2006 eqs. 9–13 with every sample a centre.
+
+    `RBFModel(centers, *rbf_solve(centers, values, scale, smoothing), scale, chunk)`:
+    the saddle-point system of eq. 10 solved by LU (see `rbf_solve`), the
+    polynomial normalized over the bounding box of `centers`. With
+    `smoothing = 0` the model interpolates the values at the centres; with
+    $\\rho > 0$ it is the smoothing spline $\\Psi - \\rho I$ of sec. 5.1
+    (Wahba 1990).
+
+    No value checks (jit-safe): duplicate or affinely degenerate (e.g.
+    coplanar) centres make the system singular and the model's arrays
+    non-finite; `solvers.fit_sharing` checks its input for both and adds
+    greedy centre selection.
+
+    **Arguments:** `centers` `(K, d)` with $K \\ge d + 1$; `values` `(K,)` or
+    `(K, C)`; `scale` `(d,)` the diagonal of $M$ (eq. 11), default ones;
+    `smoothing` $\\rho \\ge 0$ (traced); `chunk` static evaluation chunk
+    (default `rbf_auto_chunk(K)`).
+
+    **Returns:** an `RBFModel` (scalar when `values` is `(K,)`).
+
+    Comparable to `scipy.interpolate.RBFInterpolator(centers * scale, values,
+    kernel="linear", degree=1, smoothing=smoothing)` evaluated at
+    `x * scale` (scipy's kernel is $-r$, so its smoothing is this $\\rho$).
+    """
+    c, v, s, rho, single = _check_solve_inputs(centers, values, scale, smoothing)
+    k, d = c.shape
+    if k < d + 1:
+        raise ValueError(f"too few centres: `centers` has {k} rows but a degree-1 polynomial in {d}-D needs at least d + 1 = {d + 1}")
+    lam, poly = _solve_jit(c, v, jnp.ones((k,), dtype=bool), s, rho, jnp.min(c, axis=0), jnp.max(c, axis=0))
+    if single:
+        lam, poly = lam[:, 0], poly[:, 0]
+    return RBFModel(c, lam, poly, s, chunk)
 
 
 # --------------------------------------------------------------------------- sample coordinates

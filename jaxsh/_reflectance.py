@@ -1,6 +1,6 @@
 """Angular BRDF models, Fresnel terms and half/difference coordinates.
 
-Conventions (DESIGN.md): all directions are unit 3-vectors pointing *away*
+Conventions (docs/conventions.md): all directions are unit 3-vectors pointing *away*
 from the surface — `wi` towards the light ($\\omega_i$, "L"), `wo` towards the
 viewer ($\\omega_o$) — and `n` is the unit surface normal. Every model returns
 the BRDF value $\\rho(\\omega_i, \\omega_o)$ itself (not multiplied by the
@@ -158,10 +158,6 @@ def _safe_sqrt(x):
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
-def _safe_norm(v):
-    return _safe_sqrt(_dot(v, v))
-
-
 def _safe_normalize(v, fallback):
     """v/|v|, or `fallback` where |v| = 0 (finite gradients everywhere)."""
     n2 = _dot(v, v)[..., None]
@@ -260,24 +256,75 @@ def _half_vector(wi, wo):
     return _safe_normalize(s, jnp.zeros_like(s))
 
 
-def half_angle(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch"]:
-    """The half angle $\\theta_h = \\angle(\\omega_i + \\omega_o, n)$, as $\\operatorname{atan2}(|h \\times n|, h \\cdot n)$.
+def _epsilon(dtype) -> float:
+    """Threshold of the small-angle (Taylor) branches, by precision.
 
-    The atan2 form stays accurate near $\\theta_h = 0$ (where arccos of a
-    dot product loses half the digits), which is where the specular lobe of
-    R&H eq. 23 is evaluated. `wi`, `wo`, `n` are unit vectors broadcasting
-    against each other (no normalization here: this is the inner kernel
-    of the renderers); 0 where $\\omega_i = -\\omega_o$.
+    As jaxlie's `get_epsilon` (`jaxlie/utils/_utils.py`, commit 0b6655fb):
+    1e-5 for 32-bit floats and below, 1e-10 for float64.
+    """
+    return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
+
+
+def _half_angle_parts(h, n):
+    """$(|h\\times n|^2,\\ h\\cdot n)$ for a half vector $h$ of any length (θh is scale-free in h).
+
+    THE half-angle geometry of every model here: $\\tan^2\\theta_h = s_2/c^2$
+    (`cook_torrance`, `ward_isotropic`) and $\\theta_h^2$ (`_theta_h_sq`:
+    `torrance_sparrow`, `half_angle`, hence the renderers of R&H eq. 23).
+    """
+    shape = jnp.broadcast_shapes(h.shape, n.shape)
+    h = jnp.broadcast_to(h, shape)
+    n = jnp.broadcast_to(n, shape)
+    x = jnp.cross(h, n)
+    return _dot(x, x), _dot(h, n)
+
+
+def _theta_h_sq(s2, c):
+    """$\\theta_h^2 = \\operatorname{atan2}(\\sqrt{s_2}, c)^2$, smooth and gradient-safe everywhere.
+
+    $\\theta_h$ itself is a cone at $\\theta_h = 0$ ($|x|$-like: no
+    derivative there) but $\\theta_h^2$ is smooth. With $t = s_2/c^2 =
+    \\tan^2\\theta_h$ below a dtype-dependent epsilon (and $c > 0$) it is
+    the Taylor series $\\arctan^2\\sqrt t = t - \\tfrac23 t^2 + O(t^3)$ (no
+    square root: exact derivatives of all orders at 0, and relative error
+    $\\tfrac{23}{45}t^2 < 10^{-10}$); elsewhere the atan2 form, accurate near
+    0 where arccos of a dot product loses half the digits. Each branch sees
+    inputs substituted by `where` so that the other branch's singularities
+    (√0, atan2(0, 0)) never reach the gradient: the double-`where` trick of
+    jaxlie `_so3.py` (`SO3.log`, commit 0b6655fb). $h = 0$ gives 0.
+    """
+    small = (c > 0.0) & (s2 < _epsilon(c.dtype) * c * c)
+    c_small = jnp.where(small, c, 1.0)
+    t = jnp.where(small, s2, 0.0) / (c_small * c_small)
+    taylor = t * (1.0 - (2.0 / 3.0) * t)
+    theta = _safe_atan2(_safe_sqrt(jnp.where(small, 1.0, s2)), jnp.where(small, 1.0, c))
+    return jnp.where(small, taylor, theta * theta)
+
+
+def _half_angle(wi, wo, n):
+    """θh of unit `wi`, `wo`, `n` (broadcast): the renderers' kernel, see `half_angle`."""
+    return _safe_sqrt(_theta_h_sq(*_half_angle_parts(wi + wo, n)))
+
+
+def half_angle(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch"]:
+    """The half angle $\\theta_h = \\angle(\\omega_i + \\omega_o, n)$ of R&H eq. 23, gradient-safe.
+
+    Computed as $\\sqrt{\\theta_h^2}$ with $\\theta_h^2$ from
+    $\\operatorname{atan2}(|h \\times n|, h \\cdot n)$, $h = \\omega_i + \\omega_o$,
+    and a Taylor branch near 0 (`_theta_h_sq`): exact to rounding (also
+    at and near $\\theta_h = 0$, where the specular lobe of eq. 23 is
+    evaluated), and finite gradients everywhere: at $\\theta_h = 0$, where
+    $\\theta_h$ is a cone with no derivative, the gradient is 0 (so the
+    gradient of $e^{-(\\theta_h/\\sigma)^2}$ is its true value, 0). `wi`,
+    `wo`, `n` are unit vectors broadcasting against each other (no
+    normalization: this is the inner kernel of `render_practical`,
+    `practical_terms`, `torrance_sparrow` and `solvers.factorize`); 0 where
+    $\\omega_i = -\\omega_o$.
 
     **Returns:** `(...)`.
     """
-    h = wi + wo
-    n = jnp.broadcast_to(n, h.shape)
-    hn = jnp.linalg.norm(h, axis=-1)
-    hn = jnp.where(hn > 0, hn, 1.0)
-    h_cos = jnp.sum(h * n, -1) / hn
-    h_sin = jnp.linalg.norm(jnp.cross(h, n), axis=-1) / hn
-    return jnp.arctan2(h_sin, h_cos)
+    wi, wo, n = (jnp.asarray(x) for x in (wi, wo, n))
+    return _half_angle(wi, wo, n)
 
 
 def tangent_frame(
@@ -601,9 +648,8 @@ def _half(wi, wo):
 
 
 def _tan2_theta_h(h, n):
-    c = _dot(h, n)
-    x = jnp.cross(n, h)
-    s2 = _dot(x, x)
+    """$(\\tan^2\\theta_h, \\cos\\theta_h)$ of a unit half vector (finite above both horizons)."""
+    s2, c = _half_angle_parts(h, n)
     return s2 / (c * c), c
 
 
@@ -694,7 +740,7 @@ def torrance_sparrow(
     mu: Real[ArrayLike, "*#batch"] | None,
     sigma: Real[ArrayLike, "*#batch"],
 ) -> Float[Array, "*batch"]:
-    """The simplified Torrance–Sparrow model of R&H 2001 sec. 5.2 (DESIGN.md).
+    """The simplified Torrance–Sparrow model of R&H 2001 sec. 5.2 (docs/conventions.md, "BRDFs").
 
     $$\\rho = K_d + K_s\\frac{F\\,S}{4\\cos\\theta_i\\cos\\theta_o},\\quad
       S = \\frac{1}{\\pi\\sigma^2}\\exp\\left[-(\\theta_h/\\sigma)^2\\right],\\quad
@@ -731,9 +777,8 @@ def torrance_sparrow(
 @eqx.filter_jit
 def _torrance_sparrow(wi, wo, n, kd, ks, mu, sigma):
     valid, wi, wo, ci, co = _above(wi, wo, n)
-    h = _half(wi, wo)
-    theta_h = jnp.arctan2(_safe_norm(jnp.cross(n, h)), _dot(n, h))
-    s = jnp.exp(-((theta_h / sigma) ** 2)) / (_PI * sigma * sigma)
+    theta_h_sq = _theta_h_sq(*_half_angle_parts(wi + wo, n))
+    s = jnp.exp(-theta_h_sq / (sigma * sigma)) / (_PI * sigma * sigma)
     f = 1.0 if mu is None else _fresnel_normalized(co, mu)
     val = kd + ks * f * s / (4.0 * ci * co)
     return jnp.where(valid, val, 0.0)

@@ -1,6 +1,6 @@
 """Rotation of spherical-harmonic expansions: Wigner D matrices.
 
-Convention (DESIGN.md): rotations act on functions. For a rotation matrix
+Convention (docs/conventions.md): rotations act on functions. For a rotation matrix
 $R$ and $f = \\sum_i c_i Y_i$, `rotate_sh(c, R)` returns the coefficients of
 $\\omega \\mapsto f(R^{\\mathsf T}\\omega)$, which is `wigner_D(R, lmax) @ c`;
 equivalently $Y_i(R^{\\mathsf T}\\omega) = \\sum_j D_{ji}(R)\\,Y_j(\\omega)$.
@@ -228,7 +228,8 @@ def rotate_sh(
       ambiguous one such as `(9, 1)`; `True`/`False` force it.
 
     **Returns:** rotated coefficients, the shape of `coeffs` broadcast with
-    the batch shape of `R`.
+    the batch shape of `R`. NaN in, NaN out (a pure array kernel; `R` is not
+    checked for orthogonality, see `wigner_D`).
     """
     coeffs = as_float_array(coeffs, "coeffs")
     R = _check_rotation(R)

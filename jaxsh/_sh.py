@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
-from ._checks import check_dirs, check_lmax
+from ._checks import check_dirs, check_lmax, check_nonzero_dirs
 from ._indexing import sh_degrees, sh_orders
 
 # Band limits up to this value use the unrolled, chunked evaluation
@@ -353,7 +353,7 @@ def _real_sh_flat(unit, lmax: int):
 def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batch n_coeffs"]:
     """Real orthonormal spherical harmonics $Y_{lm}(\\omega)$ for $l \\le l_{max}$.
 
-    Convention (DESIGN.md): orthonormal on the sphere, no sign flips,
+    Convention (docs/conventions.md): orthonormal on the sphere, no sign flips,
     $Y_{1,-1} = c\\,y$, $Y_{1,0} = c\\,z$, $Y_{1,1} = c\\,x$ with
     $c = \\sqrt{3/4\\pi}$; in general $Y_{l,m} = \\sqrt2(-1)^m\\mathrm{Re}\\,Y_l^m$ and
     $Y_{l,-m} = \\sqrt2(-1)^m\\mathrm{Im}\\,Y_l^m$ for $m > 0$, with $Y_l^m$ the
@@ -375,15 +375,17 @@ def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batc
 
     - `dirs`: directions, shape `(..., 3)`. They are normalized here, so the
       result is a function on the sphere and its gradient is tangential; a
-      zero-length or non-finite direction raises an error at run time.
-    - `lmax`: band limit (static Python int, ≥ 0).
+      zero-length or non-finite direction raises an error at run time (the
+      one check this kernel makes on its data: a NaN direction has no
+      harmonic).
+    - `lmax`: band limit (static Python int, ≥ 0; negative is a `ValueError`).
 
     **Returns:** shape `(..., (lmax+1)**2)`, the dtype of `dirs`.
 
     Comparable to `sphericart.SphericalHarmonics(lmax)` and to
     `scipy.special.sph_harm_y` (complex, angles instead of directions).
     """
-    dirs = check_dirs(dirs)
+    dirs = check_nonzero_dirs(dirs)
     lmax = check_lmax(lmax)
     return _real_sh_jit(dirs, lmax)
 
@@ -430,7 +432,7 @@ def complex_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Complex[Array, "
     argument rules as `real_sh`; the result is complex64 for float32 input,
     complex128 for float64.
     """
-    dirs = check_dirs(dirs)
+    dirs = check_nonzero_dirs(dirs)
     lmax = check_lmax(lmax)
     return _complex_sh_jit(dirs, lmax)
 

@@ -20,11 +20,16 @@ import numpy as np
 from jax.scipy.special import gammaln
 from jaxtyping import Array, ArrayLike, Float, Real
 
-from ._checks import as_float_array, check_lmax, check_positive_int
+from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, check_values
 
 
 def _default_dtype(dtype):
-    return jnp.result_type(float) if dtype is None else dtype
+    return check_dtype(dtype)
+
+
+def _check_sigma(sigma, name: str = "sigma"):
+    """σ in (0, ∞); NaN propagates (see `jaxsh._checks`)."""
+    return check_values(sigma, lambda a: (a <= 0) | (a == jnp.inf), name, "in (0, inf) (a lobe width)")
 
 
 def lambertian_spectrum(lmax: int, dtype=None) -> Float[Array, " {lmax}+1"]:
@@ -74,17 +79,20 @@ def phong_spectrum(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*ba
     (`gammaln`, reflection for negative arguments): stable for $s$ up to
     $10^4$ and beyond, any $l$. Differentiable in $s$.
 
-    **Arguments:** `s` shininess, any shape (traced); `lmax` static.
+    **Arguments:** `s` shininess, any shape (traced), $s > -1$; `lmax` static.
     **Returns:** `(..., lmax+1)`.
+
+    $s \\le -1$ (or $s = \\infty$) is an error: a `ValueError` for concrete
+    values, a run-time error under `jit`. NaN in, NaN out.
     """
     s = as_float_array(s, "s")
     lmax = check_lmax(lmax)
+    s = check_values(s, lambda a: (a <= -1) | (a == jnp.inf), "s", "> -1 and finite (a Phong exponent)")
     return _phong_spectrum(s, lmax)
 
 
 @eqx.filter_jit
 def _phong_spectrum(s, lmax):
-    s = eqx.error_if(s, jnp.any(s <= -1), "`s` must be > -1 (Phong exponent)")
     l = jnp.arange(lmax + 1, dtype=s.dtype).reshape((1,) * s.ndim + (-1,))
     sb = s[..., None]
     logc = jnp.log(sb + 1) + 0.5 * math.log(math.pi) + gammaln(sb + 1) - (sb + 1) * math.log(2.0)
@@ -96,9 +104,12 @@ def phong_spectrum_gaussian(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Ar
     """Gaussian approximation $A_l \\approx \\exp(-l^2/2s)$ (R&H eq. 19, thesis eq. 3.40).
 
     Good for large $s$ and $l \\ll s$; use `phong_spectrum` for exact values.
+    $s \\le 0$ is an error (`ValueError`, or a run-time error under `jit`);
+    NaN in, NaN out.
     """
     s = as_float_array(s, "s")
     lmax = check_lmax(lmax)
+    s = check_values(s, lambda a: a <= 0, "s", "> 0 (a Phong exponent)")
     l = jnp.arange(lmax + 1, dtype=s.dtype).reshape((1,) * s.ndim + (-1,))
     return jnp.exp(-(l * l) / (2 * s[..., None]))
 
@@ -110,9 +121,14 @@ def microfacet_spectrum(sigma: Real[ArrayLike, "*batch"], lmax: int) -> Float[Ar
     exact numerical spectrum is `torrance_sparrow_spectrum` (it deviates from
     this form by about 0.45σ for l ≤ 1/σ, and is closer to $e^{-\\sigma^2 l(l+1)}$,
     the lobe being a gaussian in θ/2).
+
+    $\\sigma \\le 0$ (or infinite) is an error: a `ValueError` for concrete
+    values, a run-time error under `jit` (σ = −0.2 is not σ = 0.2). NaN in,
+    NaN out.
     """
     sigma = as_float_array(sigma, "sigma")
     lmax = check_lmax(lmax)
+    sigma = _check_sigma(sigma)
     l = jnp.arange(lmax + 1, dtype=sigma.dtype).reshape((1,) * sigma.ndim + (-1,))
     return jnp.exp(-((sigma[..., None] * l) ** 2))
 
@@ -204,12 +220,26 @@ def torrance_sparrow_spectrum(
     $\\cos$ of the angle from $R$ on $[\\cos(\\min(\\pi, 12\\sigma)), 1]$ ×
     uniform azimuth. R&H eq. 20 approximates this by $\\exp(-(\\sigma l)^2)$
     (times $F(\\mu, \\theta_o)$ if `mu` is given).
+
+    **Arguments:** `sigma` > 0; `theta_o` in $[0, \\pi/2)$; `mu` ≥ 1 (the
+    index of refraction) or None; all scalars. Out-of-range values are an
+    error (`ValueError`, or a run-time error under `jit`); NaN in, NaN out.
     """
     from ._reflectance import fresnel_normalized  # local import: optional coupling
 
     sigma = as_float_array(sigma, "sigma")
     theta_o = as_float_array(theta_o, "theta_o")
     lmax = check_lmax(lmax)
+    for name, a in (("sigma", sigma), ("theta_o", theta_o)):
+        if a.shape != ():
+            raise ValueError(f"`{name}` must be a scalar (shape ()), got shape {tuple(a.shape)}")
+    sigma = _check_sigma(sigma)
+    theta_o = check_values(theta_o, lambda a: (a < 0) | (a >= jnp.pi / 2), "theta_o", "in [0, pi/2) (an exitant angle)")
+    if mu is not None:
+        mu = as_float_array(mu, "mu")
+        if mu.shape != ():
+            raise ValueError(f"`mu` must be a scalar (shape ()) or None, got shape {tuple(mu.shape)}")
+        mu = check_values(mu, lambda a: (a < 1) | (a == jnp.inf), "mu", "in [1, inf) (an index of refraction)")
     nt = check_positive_int(n_theta, "n_theta")
     npf = check_positive_int(n_phi, "n_phi")
     dt = jnp.result_type(sigma.dtype, theta_o.dtype)
@@ -235,6 +265,6 @@ def torrance_sparrow_spectrum(
     s = jnp.exp(-((theta_h / sigma) ** 2)) / (jnp.pi * sigma**2)
     f = jnp.where(cos_i > 0, s / (4 * ct), 0.0)
     if mu is not None:
-        f = f * fresnel_normalized(ct, as_float_array(mu, "mu"))
+        f = f * fresnel_normalized(ct, mu)
     fz = jnp.sum(f, axis=1) * (2 * jnp.pi / npf)  # azimuthal integral, (nt,)
     return jnp.einsum("n,nl->l", wu * fz, legendre_p(u, lmax))

@@ -1,6 +1,6 @@
 """Spherical-harmonic analysis and synthesis on lat-long grids; scattered fits.
 
-Real SH in the flat layout of DESIGN.md. A lat-long image is `(H, W)` (one
+Real SH in the flat layout of docs/conventions.md. A lat-long image is `(H, W)` (one
 channel) or `(H, W, C)`; its coefficients are `(n_coeffs,)` or
 `(n_coeffs, C)`.
 
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
-from ._checks import as_float_array, check_dirs, check_lmax, check_positive_int, coeff_layout
+from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_positive_int, coeff_layout
 from ._grids import fejer1_weights, latlong_angles
 from ._indexing import sh_degrees, sh_orders
 from ._sh import _real_sh_flat, _recurrence_tables, _unit_vectors
@@ -88,7 +88,7 @@ def _check_image(image):
 
 
 def project_latlong(
-    image: Real[ArrayLike, "H W *C"], lmax: int
+    image: Real[ArrayLike, "H W *C"], lmax: int, *, allow_aliasing: bool = False
 ) -> Float[Array, "n_coeffs *C"]:
     """Real SH coefficients of a lat-long map: $c_{lm} = \\int f\\,Y_{lm}\\,d\\omega$.
 
@@ -105,17 +105,32 @@ def project_latlong(
     **Arguments:**
 
     - `image`: `(H, W)` or `(H, W, C)`, row `i` ↔ θ = π(i+½)/H from +z, column
-      `j` ↔ φ = 2π(j+½)/W from +x (DESIGN.md). Any float dtype; the result
+      `j` ↔ φ = 2π(j+½)/W from +x (docs/conventions.md). Any float dtype; the result
       has the same dtype.
     - `lmax`: band limit (static int).
+    - `allow_aliasing`: the grid resolves band limits $l_{max} < H/2$ with
+      $W > 2 l_{max}$ only; beyond that the quadrature aliases (a constant
+      map gets $|c_{l>0}|$ up to 4.4), so by default such an `lmax` is a
+      `ValueError` naming `lmax` and the image size. Pass
+      `allow_aliasing=True` to compute the (aliased) sums anyway.
 
-    **Returns:** `(n_coeffs,)` or `(n_coeffs, C)`.
+    **Returns:** `(n_coeffs,)` or `(n_coeffs, C)`. NaN in, NaN out (a pure
+    array kernel, see `jaxsh._checks`).
 
     Comparable to `ducc0.sht.analysis_2d(..., geometry="F1")` (ducc0 uses the
     complex, m ≥ 0 layout).
     """
     image = _check_image(image)
     lmax = check_lmax(lmax)
+    if not isinstance(allow_aliasing, bool):
+        raise ValueError(f"`allow_aliasing` must be a bool, got {allow_aliasing!r}")
+    h, w = image.shape[:2]
+    if not allow_aliasing and (2 * lmax >= h or 2 * lmax >= w):
+        raise ValueError(
+            f"`lmax` = {lmax} aliases on a {h}x{w} lat-long image: the grid resolves lmax < H/2 and "
+            f"lmax < W/2 (here lmax <= {max(min((h - 1) // 2, (w - 1) // 2), 0)}); use a larger image, "
+            "a smaller `lmax`, or pass allow_aliasing=True"
+        )
     return _project(image, lmax)
 
 
@@ -271,7 +286,7 @@ def fit_sh(
 
     Comparable to `numpy.linalg.lstsq(Y, values)`.
     """
-    dirs = check_dirs(dirs)
+    dirs = check_nonzero_dirs(dirs)
     lmax = check_lmax(lmax)
     values = as_float_array(values, "values")
     if dirs.ndim != 2:

@@ -1,11 +1,23 @@
-"""File input/output: images (OpenImageIO) and environment maps.
+"""File input/output: images (OpenImageIO), environment maps, normal maps, meshes, manifests.
 
 The only module of `jaxsh` that touches files. Images are linear float
-radiance `(H, W, C)` float32 NumPy arrays; PNG/JPEG are for viewing only
-(written tone-mapped and sRGB-encoded, read back decoded to linear).
+radiance `(H, W, C)` float32 NumPy arrays.
+
+**Encodings are declared, never guessed.** EXR, HDR (RGBE), PFM and float
+TIFF hold linear values. An 8- or 16-bit integer image (PNG, TIFF, JPEG)
+holds code values whose meaning the file does not reliably say (a 16-bit
+*linear* PNG is as common in photometric capture as an sRGB one), so the
+caller declares it: `read_image(path, encoding="linear" | "srgb")`. Code
+values are scaled by the format's maximum (255 or 65535) and, for `"srgb"`,
+decoded by the IEC 61966-2-1 transfer function. PNG/JPEG *outputs* are for
+viewing only (written clipped and sRGB-encoded to 8 bits).
+
+Every file this module writes is written atomically (`atomic_output`): to a
+temporary file in the same folder, then renamed over the target, so an
+interrupted run never leaves a half-written file.
 
 Environment maps are returned as lat-long images in the library's frame
-(DESIGN.md): +z up, row `i` ↔ θ = π(i+½)/H from +z, column `j` ↔
+(docs/conventions.md): +z up, row `i` ↔ θ = π(i+½)/H from +z, column `j` ↔
 φ = 2π(j+½)/W from +x towards +y. Files whose up axis is +y (most HDR maps,
 e.g. the USC light probes) are converted by an explicit rotation, never by
 guessing: with `up="+y"`, file axes $(x, y, z)$ map to library axes
@@ -15,18 +27,40 @@ file's +x (u = 0.75 of a lat-long file) stays +x.
 
 from __future__ import annotations
 
+import contextlib
+import json
+import math
 import os
+import tempfile
 
 import numpy as np
 
 from ._grids import latlong_directions
 
-__all__ = ["read_image", "write_image", "read_envmap", "read_manifest", "read_mesh", "ManifestError", "Y_UP_TO_Z_UP"]
+__all__ = [
+    "read_image",
+    "read_image_info",
+    "read_radiance",
+    "write_image",
+    "write_json",
+    "atomic_output",
+    "read_envmap",
+    "read_normal_map",
+    "read_manifest",
+    "read_mesh",
+    "ManifestError",
+    "ENCODINGS",
+    "Y_UP_TO_Z_UP",
+]
 
 #: Rotation taking a +y-up file frame to the library's +z-up frame: lib = M @ file.
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
-_LDR = {".png", ".jpg", ".jpeg", ".tif8"}
+#: The encodings `read_image` accepts for integer images.
+ENCODINGS = ("linear", "srgb")
+
+# extensions written as 8-bit sRGB (for viewing)
+_LDR = {".png", ".jpg", ".jpeg"}
 
 
 def _oiio():
@@ -35,16 +69,46 @@ def _oiio():
     return oiio
 
 
-def read_image(path) -> np.ndarray:
-    """Read an image as float32 `(H, W, C)` linear values.
+def _check_readable(path: str, what: str = "image") -> None:
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{what} file not found: {path}")
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"{path}: is a directory, expected a file ({what})")
 
-    EXR, HDR (RGBE), PFM, TIFF are read as stored; 8/16-bit PNG/JPEG are
-    decoded from sRGB to linear. Raises `FileNotFoundError` / `ValueError`
-    naming the file when it is missing or unreadable.
+
+def read_image_info(path) -> dict:
+    """The header of an image file, without reading its pixels.
+
+    **Returns:** `{"width", "height", "channels", "float": bool, "max_code": int | None, "bits": int}`:
+    `float` is true for half/float/double pixels (linear values), `max_code`
+    is 255 or 65535 for 8/16-bit integer pixels (None for float files).
+    Raises `FileNotFoundError` / `ValueError` naming the file.
     """
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"image file not found: {path}")
+    _check_readable(path)
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ValueError(f"cannot read image {path!r}: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        base = spec.format.basetype
+    finally:
+        inp.close()
+    info = {"width": int(spec.width), "height": int(spec.height), "channels": int(spec.nchannels)}
+    if base in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
+        bits = {oiio.HALF: 16, oiio.FLOAT: 32, oiio.DOUBLE: 64}[base]
+        return {**info, "float": True, "max_code": None, "bits": bits}
+    if base == oiio.UINT8:
+        return {**info, "float": False, "max_code": 255, "bits": 8}
+    if base == oiio.UINT16:
+        return {**info, "float": False, "max_code": 65535, "bits": 16}
+    raise ValueError(f"image {path!r}: unsupported pixel type {spec.format} (supported: 8/16-bit unsigned, half, float)")
+
+
+def _read_pixels(path: str):
+    """(float32 (H, W, C) array — integer codes divided by their maximum —, header info)."""
+    info = read_image_info(path)
     oiio = _oiio()
     inp = oiio.ImageInput.open(path)
     if inp is None:
@@ -53,49 +117,160 @@ def read_image(path) -> np.ndarray:
         data = inp.read_image("float")
         if data is None:
             raise ValueError(f"cannot read image {path!r}: {inp.geterror()}")
-        spec = inp.spec()
-        colorspace = spec.get_string_attribute("oiio:ColorSpace", "")
     finally:
         inp.close()
     arr = np.asarray(data, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
-    ext = os.path.splitext(path)[1].lower()
-    if ext == ".pfm":
+    if os.path.splitext(path)[1].lower() == ".pfm":
         # PFM stores scanlines bottom to top; OpenImageIO 3.2 returns them in
         # file order (its writer is conformant), so flip to top-to-bottom here.
         arr = arr[::-1].copy()
-    if ext in _LDR or colorspace.lower() in ("srgb", "srgb_rec709_scene", "srgb:g22:rec709"):
+    return arr, info
+
+
+def _check_encoding(path: str, encoding, info: dict) -> str:
+    if encoding is not None and encoding not in ENCODINGS:
+        raise ValueError(f'`encoding` must be "linear", "srgb" or None, got {encoding!r} (reading {path})')
+    if info["float"]:
+        if encoding == "srgb":
+            raise ValueError(
+                f'{path}: a float image holds linear values; `encoding="srgb"` is only for 8/16-bit integer images'
+            )
+        return "linear"
+    if encoding is None:
+        raise ValueError(
+            f'{path}: {info["bits"]}-bit integer image: declare its `encoding` ("linear" or "srgb"); '
+            "it is never guessed"
+        )
+    return encoding
+
+
+def read_image(path, encoding: str | None = None) -> np.ndarray:
+    """Read an image as float32 `(H, W, C)` linear values.
+
+    **Arguments:**
+
+    - `path`: EXR, HDR (RGBE), PFM or float TIFF (linear values, read as
+      stored), or an 8/16-bit PNG, TIFF or JPEG.
+    - `encoding`: how integer code values map to linear values: `"linear"`
+      ($v = c / c_\\max$) or `"srgb"` ($v = f^{-1}(c / c_\\max)$ with the
+      IEC 61966-2-1 decoding $f^{-1}(x) = x / 12.92$ for $x \\le 0.04045$,
+      else $((x + 0.055)/1.055)^{2.4}$), with $c_\\max$ = 255 or 65535.
+      **Required for integer images** (`None` raises `ValueError` naming the
+      file and `encoding`: metadata such as PNG's sRGB chunk is not trusted).
+      Float images are linear: `None` or `"linear"`; `"srgb"` is an error.
+
+    Raises `FileNotFoundError` / `IsADirectoryError` / `ValueError` naming
+    the file when it is missing, a directory, unreadable or of an
+    unsupported pixel type.
+    """
+    path = os.fspath(path)
+    arr, info = _read_pixels(path)
+    if _check_encoding(path, encoding, info) == "srgb":
         arr = _srgb_to_linear(arr)
     return arr
 
 
-def write_image(path, array, *, exposure: float = 0.0) -> None:
-    """Write a float image `(H, W)` or `(H, W, C)`.
+def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, saturation: float | None = None):
+    """Read a captured image as linear radiance and the mask of its unclipped pixels.
 
-    EXR/HDR/PFM/TIFF store linear float values. PNG/JPEG are for viewing:
-    the values are scaled by `2**exposure`, clipped to [0, 1] and
-    sRGB-encoded to 8 bits. Refuses to overwrite a file that an open input
-    of the same path would need (never writes over an input: callers pass
-    output directories); raises `ValueError` naming the file on failure.
+    A pixel is *saturated* when any channel reaches `saturation` (`>=`),
+    compared in the **file's own units** — code values for integer files,
+    stored values for float files — before decoding or scaling. The
+    radiance is `exposure · read_image(path, encoding)`.
+
+    **Arguments:**
+
+    - `path`, `encoding`: as `read_image`.
+    - `exposure`: a positive finite scale multiplied into the linear values.
+    - `saturation`: the threshold; `None` means the format's maximum code
+      value (255, 65535) for integer files and no threshold for float files.
+
+    **Returns:** `(radiance float32 (H, W, C), valid bool (H, W))`.
     """
     path = os.fspath(path)
-    arr = np.asarray(array, dtype=np.float32)
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    if arr.ndim != 3:
-        raise ValueError(f"`array` must have shape (H, W) or (H, W, C), got {arr.shape} (writing {path})")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"refusing to write non-finite values to {path}")
-    oiio = _oiio()
-    ext = os.path.splitext(path)[1].lower()
-    h, w, c = arr.shape
-    if ext in _LDR:
-        data = np.clip(_linear_to_srgb(np.clip(arr * 2.0**exposure, 0.0, 1.0)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        spec = oiio.ImageSpec(w, h, c, "uint8")
+    if isinstance(exposure, bool) or not isinstance(exposure, (int, float, np.floating, np.integer)) \
+            or not math.isfinite(exposure) or exposure <= 0:
+        raise ValueError(f"`exposure` must be a positive finite number, got {exposure!r} (reading {path})")
+    if saturation is not None and (isinstance(saturation, bool) or not math.isfinite(saturation) or saturation <= 0):
+        raise ValueError(f"`saturation` must be a positive finite number or None, got {saturation!r} (reading {path})")
+    arr, info = _read_pixels(path)
+    enc = _check_encoding(path, encoding, info)
+    if info["float"]:
+        file_units = arr
     else:
-        data = arr
-        spec = oiio.ImageSpec(w, h, c, "float" if ext != ".hdr" else "float")
+        file_units = np.round(arr.astype(np.float64) * info["max_code"])  # exact code values
+        if saturation is None:
+            saturation = info["max_code"]
+    valid = np.ones(arr.shape[:2], bool) if saturation is None else ~np.any(file_units >= saturation, axis=-1)
+    if enc == "srgb":
+        arr = _srgb_to_linear(arr)
+    if exposure != 1:
+        arr = (arr * np.float32(exposure)).astype(np.float32)
+    return arr, valid
+
+
+# ----------------------------------------------------------------------------- atomic writes
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Context manager for writing `path` atomically.
+
+    Yields a temporary path in the same folder (same extension, so format
+    detection by extension still works). When the block exits normally the
+    temporary file is renamed over `path` (`os.replace`, atomic on POSIX and
+    Windows); if the block raises — or is interrupted — the temporary file
+    is removed and `path` is left as it was. Replacing swaps the directory
+    entry: a symlink or hard link at `path` is replaced, never written through.
+
+        with atomic_output("out/result.json") as tmp:
+            with open(tmp, "w") as f:
+                f.write(text)
+    """
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"{path}: is a directory, cannot write a file there")
+    folder, base = os.path.split(os.path.abspath(path))
+    ext = os.path.splitext(base)[1]
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=f".tmp{ext}", dir=folder)
+    os.close(fd)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file ordinary permissions
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def write_json(path, obj, indent: int = 2) -> None:
+    """Write `obj` as JSON, atomically (`atomic_output`).
+
+    Non-finite numbers are an error (`ValueError` naming the file): JSON has
+    no NaN or Infinity (callers write unknown values as `null`).
+    """
+    path = os.fspath(path)
+    try:
+        text = json.dumps(obj, indent=indent, allow_nan=False)
+    except ValueError as e:
+        raise ValueError(f"refusing to write {path}: {e}") from None
+    with atomic_output(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text + "\n")
+
+
+def _write_pixels(path: str, spec, data) -> None:
+    """Write `data` with OpenImageIO to `path` (a temporary file of `write_image`)."""
+    oiio = _oiio()
     out = oiio.ImageOutput.create(path)
     if out is None:
         raise ValueError(f"cannot write image {path!r}: {oiio.geterror()}")
@@ -108,12 +283,109 @@ def write_image(path, array, *, exposure: float = 0.0) -> None:
         out.close()
 
 
+def write_image(path, array, *, exposure: float = 0.0) -> None:
+    """Write a float image `(H, W)` or `(H, W, C)`, atomically (`atomic_output`).
+
+    EXR/PFM/TIFF store linear float values; HDR (RGBE) stores non-negative
+    values with an 8-bit shared-exponent mantissa. PNG/JPEG are for viewing:
+    the values are scaled by `2**exposure`, clipped to [0, 1] and
+    sRGB-encoded to 8 bits (read them back with `encoding="srgb"`).
+
+    Impossible or lossy writes are errors (`ValueError` naming the file):
+    complex or non-numeric arrays, non-finite values (with their count), and
+    negative values to HDR (RGBE cannot store them).
+    """
+    path = os.fspath(path)
+    raw = np.asarray(array)
+    if np.iscomplexobj(raw):
+        raise ValueError(f"{path}: refusing to write a complex array: images are real")
+    if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer) or raw.dtype == bool):
+        raise ValueError(f"`array` must be real numbers, got dtype {raw.dtype} (writing {path})")
+    arr = raw.astype(np.float32)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3:
+        raise ValueError(f"`array` must have shape (H, W) or (H, W, C), got {raw.shape} (writing {path})")
+    bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+    if bad:
+        raise ValueError(f"{path}: refusing to write non-finite values: {bad} of {arr.size} values are NaN or inf")
+    oiio = _oiio()
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".hdr" and np.any(arr < 0):
+        n = int(np.count_nonzero(arr < 0))
+        raise ValueError(f"{path}: refusing to write negative values: RGBE (.hdr) cannot store them ({n} values < 0)")
+    h, w, c = arr.shape
+    if ext in _LDR:
+        data = np.clip(_linear_to_srgb(np.clip(arr * 2.0**exposure, 0.0, 1.0)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        spec = oiio.ImageSpec(w, h, c, "uint8")
+    else:
+        data = arr
+        spec = oiio.ImageSpec(w, h, c, "float")
+    with atomic_output(path) as tmp:
+        try:
+            _write_pixels(tmp, spec, data)
+        except OSError as e:  # name the target, not the temporary file
+            if e.errno is None:
+                raise OSError(f"{path}: {e}") from e
+            raise OSError(e.errno, e.strerror, path) from e
+
+
 def _srgb_to_linear(x):
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    """IEC 61966-2-1 decoding (sRGB code value in [0, 1] to linear)."""
+    x = np.asarray(x)
+    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def _linear_to_srgb(x):
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+
+
+# ----------------------------------------------------------------------------- normal maps
+
+
+def read_normal_map(path) -> np.ndarray:
+    """Read a world-frame normal map `(H, W, 3)` (EXR, PFM or `.npy`).
+
+    Each pixel holds a unit normal, or the zero vector where the pixel is off
+    the object. Validated: finite, three channels, every non-zero vector of
+    norm 1 within 1e-3 (renormalized exactly on return). 8/16-bit integer
+    files are rejected (normals need float storage).
+
+    **Returns:** float64 `(H, W, 3)`; the object mask is `np.any(n != 0, -1)`.
+    Raises `FileNotFoundError` / `ValueError` naming the file.
+    """
+    path = os.fspath(path)
+    _check_readable(path, "normal map")
+    if path.lower().endswith(".npy"):
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"cannot read normal map {path!r}: {e}") from None
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise ValueError(f"normal map {path!r}: dtype must be float, got {arr.dtype}")
+    else:
+        arr, info = _read_pixels(path)
+        if not info["float"]:
+            raise ValueError(f"normal map {path!r}: {info['bits']}-bit integer images are not normal maps; use EXR, PFM or .npy")
+    arr = np.asarray(arr, np.float64)
+    if arr.ndim != 3 or arr.shape[-1] != 3:
+        raise ValueError(f"normal map {path!r} must have shape (H, W, 3), got {arr.shape}")
+    bad = int(np.count_nonzero(~np.isfinite(arr).all(-1)))
+    if bad:
+        raise ValueError(f"normal map {path!r}: {bad} pixels are not finite")
+    norm = np.linalg.norm(arr, axis=-1)
+    on = norm > 0
+    off_unit = on & (np.abs(norm - 1.0) > 1e-3)
+    if np.any(off_unit):
+        i, j = np.argwhere(off_unit)[0]
+        raise ValueError(
+            f"normal map {path!r}: {int(off_unit.sum())} pixels are neither unit vectors (within 1e-3) nor zero "
+            f"(off the object), e.g. pixel (row {i}, column {j}) has norm {norm[i, j]:.6g}"
+        )
+    return np.where(on[..., None], arr / np.where(on, norm, 1.0)[..., None], 0.0)
+
+
+# ----------------------------------------------------------------------------- environment maps
 
 
 def _bilinear_wrap(img, u, v):
@@ -144,7 +416,9 @@ def _bilinear_clamp(img, u, v):
     return (img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy
 
 
-def read_envmap(path, up: str = "+z", layout: str = "latlong", height: int | None = None) -> np.ndarray:
+def read_envmap(
+    path, up: str = "+z", layout: str = "latlong", height: int | None = None, encoding: str | None = None
+) -> np.ndarray:
     """Read an environment map and return it as a lat-long map in the library frame.
 
     **Arguments:**
@@ -158,6 +432,7 @@ def read_envmap(path, up: str = "+z", layout: str = "latlong", height: int | Non
       `jaxsh.angular_map_directions`; its frame is +y up).
     - `height`: output rows (width = 2·height). Default: the file's height for
       lat-long, half the size for angular maps.
+    - `encoding`: for 8/16-bit integer files only, as `read_image` (required there).
 
     A `"+y"` lat-long file whose width is a multiple of 4 and whose size is
     kept is remapped exactly (a column permutation); otherwise the map is
@@ -169,7 +444,7 @@ def read_envmap(path, up: str = "+z", layout: str = "latlong", height: int | Non
         raise ValueError(f'`up` must be "+z" or "+y", got {up!r}')
     if layout not in ("latlong", "angular"):
         raise ValueError(f'`layout` must be "latlong" or "angular", got {layout!r}')
-    img = read_image(path)
+    img = read_image(path, encoding)
     fh, fw = img.shape[:2]
     if layout == "latlong":
         if fw != 2 * fh:
@@ -215,180 +490,383 @@ class ManifestError(ValueError):
     """A capture manifest that cannot be used; the message names the file and the field."""
 
 
-def _field(d, key, where, path, kind=None, required=True, default=None):
-    if not isinstance(d, dict):
-        raise ManifestError(f"{path}: `{where}` must be an object")
-    if key not in d or d[key] is None:
-        if required:
-            raise ManifestError(f"{path}: missing field `{where}.{key}`")
-        return default
-    v = d[key]
-    if kind == "number":
+class _ManifestNotFound(ManifestError, FileNotFoundError):
+    """A manifest path that does not exist (both a `ManifestError` and a `FileNotFoundError`)."""
+
+
+_BRDF_MODELS = ("torrance_sparrow", "sharing", "sharing_spatial")
+_SOLVE_DEFAULTS = {"lighting_lmax": 12, "render_lmax": None, "fresnel": True, "saturation": None,
+                   "brdf_model": "torrance_sparrow"}
+
+
+class _Reader:
+    """Validation helpers bound to one manifest file (every message starts with its path)."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.base = os.path.dirname(os.path.abspath(path))
+
+    def err(self, where: str, msg: str) -> ManifestError:
+        return ManifestError(f"{self.path}: `{where}` {msg}")
+
+    def obj(self, v, where: str, allowed, required=()) -> dict:
+        """`v` must be an object whose keys are in `allowed`; keys starting with "_" are comments."""
+        if not isinstance(v, dict):
+            raise self.err(where, f"must be an object, got {_show(v)}")
+        for key in v:
+            if key.startswith("_") or key in allowed:
+                continue
+            import difflib
+
+            close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
+            hint = f'; did you mean "{close[0]}"?' if close else f" (allowed: {', '.join(sorted(allowed))})"
+            raise ManifestError(f"{self.path}: unknown field `{_join(where, key)}`{hint}")
+        for key in required:
+            if v.get(key) is None:
+                raise ManifestError(f"{self.path}: missing field `{_join(where, key)}`")
+        return v
+
+    def number(self, v, where: str, *, gt=None, ge=None) -> float:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ManifestError(f"{path}: `{where}.{key}` must be a number, got {v!r}")
-        return float(v)
-    if kind == "string" and not isinstance(v, str):
-        raise ManifestError(f"{path}: `{where}.{key}` must be a string, got {v!r}")
-    return v
+            raise self.err(where, f"must be a number, got {_show(v)}")
+        try:
+            x = float(v)
+        except OverflowError:
+            raise self.err(where, f"must be a finite number, got {_show(v)}") from None
+        if not math.isfinite(x):
+            raise self.err(where, f"must be a finite number, got {x}")
+        if gt is not None and not x > gt:
+            raise self.err(where, f"must be > {gt}, got {_show(v)}")
+        if ge is not None and not x >= ge:
+            raise self.err(where, f"must be >= {ge}, got {_show(v)}")
+        return x
+
+    def integer(self, v, where: str, *, ge=None) -> int:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.err(where, f"must be an integer, got {_show(v)}")
+        if isinstance(v, float) and not (math.isfinite(v) and v.is_integer()):
+            raise self.err(where, f"must be an integer, got {_show(v)}")
+        n = int(v)
+        if ge is not None and n < ge:
+            raise self.err(where, f"must be >= {ge}, got {n}")
+        return n
+
+    def boolean(self, v, where: str) -> bool:
+        if not isinstance(v, bool):
+            raise self.err(where, f"must be true or false, got {_show(v)}")
+        return v
+
+    def choice(self, v, where: str, choices) -> str:
+        if not isinstance(v, str) or v not in choices:
+            raise self.err(where, f"must be one of {', '.join(json.dumps(c) for c in choices)}, got {_show(v)}")
+        return v
+
+    def vector(self, v, where: str, n: int) -> np.ndarray:
+        if not isinstance(v, list) or len(v) != n:
+            raise self.err(where, f"must be a list of {n} numbers, got {_show(v)}")
+        return np.array([self.number(x, f"{where}[{i}]") for i, x in enumerate(v)])
+
+    def rgb(self, v, where: str) -> np.ndarray:
+        """A number or [r, g, b], each finite and >= 0."""
+        if isinstance(v, list):
+            a = self.vector(v, where, 3)
+            for i, x in enumerate(a):
+                if x < 0:
+                    raise self.err(f"{where}[{i}]", f"must be >= 0, got {x}")
+            return a
+        return np.full(3, self.number(v, where, ge=0))
+
+    def file(self, v, where: str, *, must_exist: bool) -> str:
+        if not isinstance(v, str) or not v:
+            raise self.err(where, f"must be a file name, got {_show(v)}")
+        p = os.path.normpath(os.path.join(self.base, v))
+        if os.path.isdir(p):
+            raise self.err(where, f"is a directory, expected a file: {p}")
+        if must_exist and not os.path.exists(p):
+            raise self.err(where, f"file not found: {p}")
+        return p
+
+    def image_info(self, p: str, where: str) -> dict:
+        try:
+            return read_image_info(p)
+        except (ValueError, OSError) as e:
+            raise self.err(where, f"cannot be read: {e}") from None
 
 
-def _array(v, shape, where, path):
+def _join(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+def _show(v) -> str:
+    s = json.dumps(v) if isinstance(v, (dict, list, str, bool, type(None))) else repr(v)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+def _lighting(r: _Reader, v, where: str):
+    if v is None:
+        return None
+    r.obj(v, where, {"envmap", "up", "layout", "encoding", "directional"})
+    env = None if v.get("envmap") is None else r.file(v["envmap"], f"{where}.envmap", must_exist=True)
+    up = r.choice(v.get("up", "+z"), f"{where}.up", ("+z", "+y"))
+    layout = r.choice(v.get("layout", "latlong"), f"{where}.layout", ("latlong", "angular"))
+    enc = None if v.get("encoding") is None else r.choice(v["encoding"], f"{where}.encoding", ENCODINGS)
+    if env is not None:
+        info = r.image_info(env, f"{where}.envmap")
+        if info["float"] and enc == "srgb":
+            raise r.err(f"{where}.encoding", f'must be "linear" (or absent) for the float image {env}')
+        if not info["float"] and enc is None:
+            raise r.err(f"{where}.encoding", f'is required for the {info["bits"]}-bit integer image {env} ("linear" or "srgb")')
+    dirs_raw = v.get("directional")
+    dirs = []
+    if dirs_raw is not None:
+        if not isinstance(dirs_raw, list):
+            raise r.err(f"{where}.directional", f"must be a list of sources, got {_show(dirs_raw)}")
+        for j, s in enumerate(dirs_raw):
+            w = f"{where}.directional[{j}]"
+            r.obj(s, w, {"direction", "radiance"}, required=("direction", "radiance"))
+            d = r.vector(s["direction"], f"{w}.direction", 3)
+            norm = float(np.linalg.norm(d))
+            if not norm > 0:
+                raise r.err(f"{w}.direction", "must be non-zero")
+            dirs.append({"direction": d / norm, "radiance": r.rgb(s["radiance"], f"{w}.radiance")})
+    if env is None and not dirs:
+        raise ManifestError(f"{r.path}: `{where}` has neither an `envmap` nor `directional` sources")
+    return {"envmap": env, "up": up, "layout": layout, "encoding": enc, "directional": dirs}
+
+
+def _camera(r: _Reader, cam, where: str, image_info):
+    common = {"model", "width", "height", "cam_to_world"}
+    if not isinstance(cam, dict):
+        raise r.err(where, f"must be an object, got {_show(cam)}")
+    model = r.choice(cam.get("model"), f"{where}.model", ("pinhole", "orthographic"))
+    c = {"model": model}
+    if model == "pinhole":
+        r.obj(cam, where, common | {"fx", "fy", "cx", "cy"}, required=("fx", "fy", "cx", "cy", "cam_to_world"))
+        c["fx"] = r.number(cam["fx"], f"{where}.fx", gt=0)
+        c["fy"] = r.number(cam["fy"], f"{where}.fy", gt=0)
+        c["cx"] = r.number(cam["cx"], f"{where}.cx")
+        c["cy"] = r.number(cam["cy"], f"{where}.cy")
+    else:
+        r.obj(cam, where, common | {"scale"}, required=("scale", "cam_to_world"))
+        c["scale"] = r.number(cam["scale"], f"{where}.scale", gt=0)
+    rows = cam["cam_to_world"]
+    w = f"{where}.cam_to_world"
+    if not isinstance(rows, list) or len(rows) != 4 or not all(isinstance(x, list) and len(x) == 4 for x in rows):
+        raise r.err(w, f"must be a 4x4 matrix (a list of 4 rows of 4 numbers), got {_show(rows)}")
+    m = np.array([[r.number(x, f"{w}[{i}][{j}]") for j, x in enumerate(row)] for i, row in enumerate(rows)])
+    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9:
+        raise r.err(w, f"must have the last row [0, 0, 0, 1], got {m[3].tolist()}")
+    rot = m[:3, :3]
+    if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6 or np.linalg.det(rot) < 0:
+        raise r.err(w, "must hold a rotation (orthonormal within 1e-6, det +1) in its upper-left 3x3 block")
+    c["cam_to_world"] = m
+    wd = None if cam.get("width") is None else r.integer(cam["width"], f"{where}.width", ge=1)
+    ht = None if cam.get("height") is None else r.integer(cam["height"], f"{where}.height", ge=1)
+    if (wd is None or ht is None) and image_info is not None:
+        wd = image_info["width"] if wd is None else wd
+        ht = image_info["height"] if ht is None else ht
+    if wd is None or ht is None:
+        view = where.rsplit(".", 1)[0]
+        raise ManifestError(f"{r.path}: `{where}.width`/`height` are needed (or an existing `{view}.image`)")
+    c["width"], c["height"] = wd, ht
+    return c
+
+
+def _normal_map_shape(r: _Reader, p: str, where: str):
+    if p.lower().endswith(".npy"):
+        try:
+            a = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise r.err(where, f"cannot be read: {e}") from None
+        shape = tuple(a.shape)
+    else:
+        info = r.image_info(p, where)
+        if not info["float"]:
+            raise r.err(where, f"must be a float image (EXR, PFM) or .npy, got a {info['bits']}-bit integer image {p}")
+        shape = (info["height"], info["width"], info["channels"])
+    if len(shape) != 3 or shape[2] != 3:
+        raise r.err(where, f"must hold (H, W, 3) normals, got shape {shape} in {p}")
+    return shape[:2]
+
+
+def _read_json(path: str):
     try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ManifestError(f"{path}: `{where}` must be numeric with shape {shape}") from None
-    if shape is not None and a.shape != shape:
-        raise ManifestError(f"{path}: `{where}` must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ManifestError(f"{path}: `{where}` has non-finite values")
-    return a
+        with open(path, "rb") as f:
+            data = f.read()
+    except IsADirectoryError:
+        raise ManifestError(f"{path}: is a directory, expected a manifest file") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ManifestError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason})") from None
 
+    def no_duplicates(pairs):
+        d = {}
+        for k, v in pairs:
+            if k in d:
+                raise ManifestError(f"{path}: field `{k}` appears twice in one object")
+            d[k] = v
+        return d
 
-def _rgb(v, where, path):
-    a = _array(v, None, where, path)
-    if a.shape == ():
-        return np.full(3, float(a))
-    if a.shape != (3,):
-        raise ManifestError(f"{path}: `{where}` must be a number or [r, g, b], got shape {a.shape}")
-    return a
+    try:
+        return json.loads(text, object_pairs_hook=no_duplicates)
+    except json.JSONDecodeError as e:
+        raise ManifestError(f"{path}: not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}") from None
+    except RecursionError:
+        raise ManifestError(f"{path}: not valid JSON: nested too deeply") from None
 
 
 def read_manifest(path) -> dict:
-    """Read and validate a capture manifest (DESIGN.md, "Capture manifest").
+    """Read and validate a capture manifest completely (docs/manifest.md lists every field).
 
-    Paths inside are resolved relative to the manifest. Returns a plain dict:
+    Everything is checked before any work: JSON syntax (with line and
+    column), UTF-8, types (integers for sizes, finite numbers), ranges,
+    unknown fields (an error, with a "did you mean"), file references
+    (existing files, not directories), camera matrices (a rotation and
+    the last row [0, 0, 0, 1]), declared image encodings (read from the
+    image headers). Paths are resolved relative to the manifest. Keys
+    starting with `_` are comments and are skipped.
 
-    - `geometry`: `{"sphere": {"center": (3,), "radius": float}}` or `{"mesh": abs_path}`;
-    - `views`: list of `{"image": abs_path | None, "mask": abs_path | None, "camera": {...}}`
-      with the camera's `model` ("pinhole" or "orthographic"), its intrinsics,
-      `width`, `height` (from the camera block, else from the image when it
-      exists) and `cam_to_world` `(4, 4)`;
-    - `lighting`: None (unknown) or `{"envmap": abs_path | None, "up", "layout",
+    **Returns:** a plain dict:
+
+    - `geometry`: `{"sphere": {"center": (3,), "radius"}}`, `{"mesh": abs_path}`,
+      `{"normal_map": abs_path}`, or `{}` (every view has its own `normal_map`);
+    - `views`: list of `{"image", "mask", "normal_map": abs_path | None, "camera": {...},
+      "encoding": "linear" | "srgb" | None, "exposure": float, "saturation": float | None,
+      "lighting": None | a lighting dict}`; the camera has its `model` ("pinhole"
+      or "orthographic"), intrinsics, `width`, `height` (from the camera
+      block, else from the image header) and `cam_to_world` `(4, 4)`. The
+      encoding is "linear" for float images; `saturation` defaults to the
+      image's maximum code value for integer images;
+    - `lighting`: None (unknown) or `{"envmap": abs_path | None, "up", "layout", "encoding",
       "directional": [{"direction": (3,) unit, "radiance": (3,)}]}`;
     - `brdf`: None (unknown) or `{"model": "torrance_sparrow", "kd": (3,), "ks": (3,), "mu", "sigma"}`;
-    - `solve`: dict (options, e.g. `lighting_lmax`).
+    - `solve`: `{"lighting_lmax", "render_lmax", "fresnel", "saturation", "brdf_model"}` with defaults;
+    - `encoding`: the top-level default encoding or None; `path`: the manifest's absolute path.
 
-    Every problem raises `ManifestError` (a `ValueError`) naming the file and the field.
+    Every problem raises `ManifestError` (a `ValueError`) naming the file and
+    the field path (e.g. `views[2].camera.fx`); a missing manifest raises an
+    error that is both a `ManifestError` and a `FileNotFoundError`.
     """
-    import json
-
     path = os.fspath(path)
     if not os.path.exists(path):
-        raise FileNotFoundError(f"manifest not found: {path}")
-    try:
-        with open(path) as f:
-            raw = json.load(f)
-    except json.JSONDecodeError as e:
-        raise ManifestError(f"{path}: not valid JSON ({e})") from None
+        raise _ManifestNotFound(f"manifest not found: {path}")
+    raw = _read_json(path)
+    r = _Reader(path)
     if not isinstance(raw, dict):
-        raise ManifestError(f"{path}: the manifest must be a JSON object")
-    base = os.path.dirname(os.path.abspath(path))
+        raise ManifestError(f"{path}: the manifest must be a JSON object, got {_show(raw)}")
+    r.obj(raw, "", {"$schema", "geometry", "views", "lighting", "brdf", "solve", "encoding"}, required=("views",))
+    default_enc = None if raw.get("encoding") is None else r.choice(raw["encoding"], "encoding", ENCODINGS)
 
-    def resolve(p, where):
-        if not isinstance(p, str) or not p:
-            raise ManifestError(f"{path}: `{where}` must be a file name")
-        return os.path.normpath(os.path.join(base, p))
-
-    geo = _field(raw, "geometry", "", path)
-    if not isinstance(geo, dict) or len(set(geo) & {"mesh", "sphere"}) != 1:
-        raise ManifestError(f'{path}: `geometry` must have exactly one of "mesh" or "sphere"')
-    if "sphere" in geo:
-        sph = geo["sphere"]
-        center = _array(_field(sph, "center", "geometry.sphere", path), (3,), "geometry.sphere.center", path)
-        radius = _field(sph, "radius", "geometry.sphere", path, "number")
-        if radius <= 0:
-            raise ManifestError(f"{path}: `geometry.sphere.radius` must be > 0, got {radius}")
-        geometry = {"sphere": {"center": center, "radius": radius}}
-    else:
-        mesh = resolve(geo["mesh"], "geometry.mesh")
-        if not os.path.exists(mesh):
-            raise ManifestError(f"{path}: `geometry.mesh` file not found: {mesh}")
-        geometry = {"mesh": mesh}
-
-    views_raw = _field(raw, "views", "", path)
+    # views first: whether `geometry` may be absent depends on them
+    views_raw = raw["views"]
     if not isinstance(views_raw, list) or not views_raw:
-        raise ManifestError(f"{path}: `views` must be a non-empty list")
+        raise r.err("views", f"must be a non-empty list, got {_show(views_raw)}")
     views = []
+    allowed_view = {"image", "mask", "camera", "encoding", "exposure", "saturation", "lighting", "normal_map"}
     for k, v in enumerate(views_raw):
         where = f"views[{k}]"
-        image = resolve(v["image"], f"{where}.image") if isinstance(v, dict) and v.get("image") else None
-        mask = resolve(v["mask"], f"{where}.mask") if isinstance(v, dict) and v.get("mask") else None
-        cam = _field(v, "camera", where, path)
-        model = _field(cam, "model", f"{where}.camera", path, "string")
-        cw = f"{where}.camera"
-        c = {"model": model}
-        if model == "pinhole":
-            for key in ("fx", "fy", "cx", "cy"):
-                c[key] = _field(cam, key, cw, path, "number")
-            if c["fx"] <= 0 or c["fy"] <= 0:
-                raise ManifestError(f"{path}: `{cw}.fx` and `{cw}.fy` must be > 0")
-        elif model == "orthographic":
-            c["scale"] = _field(cam, "scale", cw, path, "number")
-            if c["scale"] <= 0:
-                raise ManifestError(f"{path}: `{cw}.scale` must be > 0")
-        else:
-            raise ManifestError(f'{path}: `{cw}.model` must be "pinhole" or "orthographic", got {model!r}')
-        m = _array(_field(cam, "cam_to_world", cw, path), (4, 4), f"{cw}.cam_to_world", path)
-        rot = m[:3, :3]
-        if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6 or np.linalg.det(rot) < 0:
-            raise ManifestError(f"{path}: `{cw}.cam_to_world` must hold a rotation (orthonormal, det +1)")
-        c["cam_to_world"] = m
-        w = _field(cam, "width", cw, path, "number", required=False)
-        h = _field(cam, "height", cw, path, "number", required=False)
-        if (w is None or h is None) and image is not None and os.path.exists(image):
-            img = read_image(image)
-            h, w = img.shape[:2]
-        if w is None or h is None:
-            raise ManifestError(f"{path}: `{cw}.width`/`height` are needed (or an existing `{where}.image`)")
-        c["width"], c["height"] = int(w), int(h)
-        views.append({"image": image, "mask": mask, "camera": c})
+        r.obj(v, where, allowed_view, required=("camera",))
+        image = None if v.get("image") is None else r.file(v["image"], f"{where}.image", must_exist=False)
+        mask = None if v.get("mask") is None else r.file(v["mask"], f"{where}.mask", must_exist=False)
+        info = r.image_info(image, f"{where}.image") if image is not None and os.path.exists(image) else None
+        cam = _camera(r, v["camera"], f"{where}.camera", info)
+        if info is not None and (info["width"], info["height"]) != (cam["width"], cam["height"]):
+            raise r.err(f"{where}.image", f"is {info['width']}x{info['height']} but `{where}.camera` is "
+                                          f"{cam['width']}x{cam['height']}: {image}")
+        enc = default_enc if v.get("encoding") is None else r.choice(v["encoding"], f"{where}.encoding", ENCODINGS)
+        saturation = None if v.get("saturation") is None else r.number(v["saturation"], f"{where}.saturation", gt=0)
+        if info is not None:
+            if info["float"]:
+                if enc == "srgb":
+                    raise r.err(f"{where}.encoding", f'must be "linear" for the float image {image} '
+                                                     "(EXR/HDR/PFM hold linear values)")
+                enc = "linear"
+            else:
+                if enc is None:
+                    raise r.err(f"{where}.encoding", f"is required for the {info['bits']}-bit integer image {image} "
+                                                     '("linear" or "srgb"; a top-level `encoding` sets a default)')
+                if saturation is None:
+                    saturation = float(info["max_code"])
+        exposure = 1.0 if v.get("exposure") is None else r.number(v["exposure"], f"{where}.exposure", gt=0)
+        nmap = None if v.get("normal_map") is None else r.file(v["normal_map"], f"{where}.normal_map", must_exist=True)
+        if nmap is not None:
+            hw = _normal_map_shape(r, nmap, f"{where}.normal_map")
+            if hw != (cam["height"], cam["width"]):
+                raise r.err(f"{where}.normal_map", f"is {hw[1]}x{hw[0]} but `{where}.camera` is "
+                                                   f"{cam['width']}x{cam['height']}: {nmap}")
+        lighting_v = _lighting(r, v.get("lighting"), f"{where}.lighting")
+        views.append({"image": image, "mask": mask, "normal_map": nmap, "camera": cam, "encoding": enc,
+                      "exposure": exposure, "saturation": saturation, "lighting": lighting_v})
 
-    lighting = None
-    lraw = raw.get("lighting")
-    if lraw is not None:
-        if not isinstance(lraw, dict):
-            raise ManifestError(f"{path}: `lighting` must be an object or null")
-        env = resolve(lraw["envmap"], "lighting.envmap") if lraw.get("envmap") else None
-        if env is not None and not os.path.exists(env):
-            raise ManifestError(f"{path}: `lighting.envmap` file not found: {env}")
-        up = lraw.get("up", "+z")
-        layout = lraw.get("layout", "latlong")
-        if up not in ("+z", "+y"):
-            raise ManifestError(f'{path}: `lighting.up` must be "+z" or "+y", got {up!r}')
-        if layout not in ("latlong", "angular"):
-            raise ManifestError(f'{path}: `lighting.layout` must be "latlong" or "angular", got {layout!r}')
-        dirs = []
-        for j, s in enumerate(lraw.get("directional") or []):
-            d = _array(_field(s, "direction", f"lighting.directional[{j}]", path), (3,), f"lighting.directional[{j}].direction", path)
-            if np.linalg.norm(d) == 0:
-                raise ManifestError(f"{path}: `lighting.directional[{j}].direction` must be non-zero")
-            r = _rgb(_field(s, "radiance", f"lighting.directional[{j}]", path), f"lighting.directional[{j}].radiance", path)
-            dirs.append({"direction": d / np.linalg.norm(d), "radiance": r})
-        if env is None and not dirs:
-            raise ManifestError(f"{path}: `lighting` has neither an `envmap` nor `directional` sources")
-        lighting = {"envmap": env, "up": up, "layout": layout, "directional": dirs}
+    per_view_normals = [v["normal_map"] is not None for v in views]
+    geo = raw.get("geometry")
+    if geo is None:
+        if not all(per_view_normals):
+            raise ManifestError(f"{path}: missing field `geometry` (it may be left out only when every view has a `normal_map`)")
+        geometry = {}
+    else:
+        r.obj(geo, "geometry", {"mesh", "sphere", "normal_map"})
+        if len([key for key in ("mesh", "sphere", "normal_map") if geo.get(key) is not None]) != 1:
+            raise ManifestError(f'{path}: `geometry` must have exactly one of "mesh", "sphere" or "normal_map"')
+        if any(per_view_normals) and geo.get("normal_map") is None:
+            k = per_view_normals.index(True)
+            raise r.err(f"views[{k}].normal_map", "cannot be combined with a `geometry` mesh or sphere "
+                                                  "(give normal maps per view, or a `geometry.normal_map`)")
+        if geo.get("sphere") is not None:
+            sph = r.obj(geo["sphere"], "geometry.sphere", {"center", "radius"}, required=("center", "radius"))
+            geometry = {"sphere": {"center": r.vector(sph["center"], "geometry.sphere.center", 3),
+                                   "radius": r.number(sph["radius"], "geometry.sphere.radius", gt=0)}}
+        elif geo.get("mesh") is not None:
+            geometry = {"mesh": r.file(geo["mesh"], "geometry.mesh", must_exist=True)}
+        else:
+            nmap = r.file(geo["normal_map"], "geometry.normal_map", must_exist=True)
+            hw = _normal_map_shape(r, nmap, "geometry.normal_map")
+            for k, v in enumerate(views):
+                c = v["camera"]
+                if hw != (c["height"], c["width"]):
+                    raise r.err("geometry.normal_map", f"is {hw[1]}x{hw[0]} but `views[{k}].camera` is "
+                                                       f"{c['width']}x{c['height']}: {nmap}")
+                if v["normal_map"] is None and not _same_camera(c, views[0]["camera"]):
+                    raise r.err(f"views[{k}].camera", "differs from `views[0].camera`: a `geometry.normal_map` is in "
+                                                      "the pixel grid of one camera shared by all views "
+                                                      "(give `views[k].normal_map` per view instead)")
+            geometry = {"normal_map": nmap}
+
+    lighting = _lighting(r, raw.get("lighting"), "lighting")
 
     brdf = None
-    braw = raw.get("brdf")
-    if braw is not None:
-        model = _field(braw, "model", "brdf", path, "string")
-        if model != "torrance_sparrow":
-            raise ManifestError(f'{path}: `brdf.model` must be "torrance_sparrow", got {model!r}')
+    if raw.get("brdf") is not None:
+        b = r.obj(raw["brdf"], "brdf", {"model", "kd", "ks", "mu", "sigma"}, required=("model", "kd", "ks", "mu", "sigma"))
+        model = r.choice(b["model"], "brdf.model", ("torrance_sparrow",))
         brdf = {
             "model": model,
-            "kd": _rgb(_field(braw, "kd", "brdf", path), "brdf.kd", path),
-            "ks": _rgb(_field(braw, "ks", "brdf", path), "brdf.ks", path),
-            "mu": _field(braw, "mu", "brdf", path, "number"),
-            "sigma": _field(braw, "sigma", "brdf", path, "number"),
+            "kd": r.rgb(b["kd"], "brdf.kd"),
+            "ks": r.rgb(b["ks"], "brdf.ks"),
+            "mu": r.number(b["mu"], "brdf.mu", ge=1),
+            "sigma": r.number(b["sigma"], "brdf.sigma", gt=0),
         }
-        if not brdf["sigma"] > 0:
-            raise ManifestError(f"{path}: `brdf.sigma` must be > 0")
-        if not brdf["mu"] > 0:
-            raise ManifestError(f"{path}: `brdf.mu` must be > 0")
-    solve = raw.get("solve") or {}
-    if not isinstance(solve, dict):
-        raise ManifestError(f"{path}: `solve` must be an object")
-    return {"path": os.path.abspath(path), "geometry": geometry, "views": views, "lighting": lighting, "brdf": brdf, "solve": solve}
+
+    s = {} if raw.get("solve") is None else r.obj(raw["solve"], "solve", set(_SOLVE_DEFAULTS))
+    solve = dict(_SOLVE_DEFAULTS)
+    if s.get("lighting_lmax") is not None:
+        solve["lighting_lmax"] = r.integer(s["lighting_lmax"], "solve.lighting_lmax", ge=0)
+    if s.get("render_lmax") is not None:
+        solve["render_lmax"] = r.integer(s["render_lmax"], "solve.render_lmax", ge=0)
+    if s.get("fresnel") is not None:
+        solve["fresnel"] = r.boolean(s["fresnel"], "solve.fresnel")
+    if s.get("saturation") is not None:
+        solve["saturation"] = r.number(s["saturation"], "solve.saturation", gt=0)
+    if s.get("brdf_model") is not None:
+        solve["brdf_model"] = r.choice(s["brdf_model"], "solve.brdf_model", _BRDF_MODELS)
+    return {"path": os.path.abspath(path), "geometry": geometry, "views": views, "lighting": lighting, "brdf": brdf,
+            "solve": solve, "encoding": default_enc}
+
+
+def _same_camera(a: dict, b: dict) -> bool:
+    if a.keys() != b.keys():
+        return False
+    return all(np.array_equal(a[k], b[k]) if k == "cam_to_world" else a[k] == b[k] for k in a)
 
 
 def read_mesh(path):

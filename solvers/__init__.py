@@ -1,7 +1,7 @@
 """solvers: inverse rendering on top of jaxsh (R&H 2001 sec. 6; Zickler et al. 2006).
 
 Results are equinox Modules with the estimate, a `Status`, iterations, RMS
-residual and standard errors; see DESIGN.md.
+residual and standard errors; see docs/results.md.
 """
 
 from ._results import Solution as Solution, SolveError as SolveError, Status as Status, status_name as status_name
@@ -13,9 +13,9 @@ from ._data import (
     practical_terms_for as practical_terms_for,
     predict as predict,
 )
-from ._brdf import BRDFResult as BRDFResult, fit_brdf as fit_brdf
+from ._brdf import MU_BOUNDS as MU_BOUNDS, SIGMA_BOUNDS as SIGMA_BOUNDS, BRDFResult as BRDFResult, fit_brdf as fit_brdf
 from ._brdf_sh import BRDFSHResult as BRDFSHResult, fit_brdf_sh as fit_brdf_sh, predict_brdf_sh as predict_brdf_sh
-from ._synthetic import (
+from .synthetic import (
     SyntheticCapture as SyntheticCapture,
     default_sources as default_sources,
     sphere_capture as sphere_capture,

@@ -23,6 +23,8 @@ precomputed `jaxsh.PracticalTerms`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -30,12 +32,14 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
+from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
+from ._normal_equations import covariance_from_jacobian, inverse_sym2_diag, solve_grouped_shared, solve_sym2
+from ._results import Solution, Status, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
-from ._data import Lighting, Observations, Status, TorranceSparrow, practical_terms_for
 
 
-class BRDFResult(eqx.Module):
-    """Result of `fit_brdf`.
+class BRDFResult(Solution):
+    """Result of `fit_brdf` (a `solvers.Solution`; `estimate` is `brdf`).
 
     **Fields:**
 
@@ -44,13 +48,22 @@ class BRDFResult(eqx.Module):
       where the data do not determine a parameter). They are statistical:
       they measure how well the pixels determine a parameter under the
       practical model (noise, conditioning), not the model's own error
-      against real reflection, which can be larger (see the closing notes:
-      with an area source only, sigma was off by ~9 standard errors).
+      against real reflection, which can be larger (measured: with an area source only,
+      sigma was off by ~9 standard errors; docs/results.md).
     - `covariance`: `(p, p)` covariance of `(kd..., ks..., mu, sigma)`
       (homogeneous fits; the `(mu, sigma)` block for textured fits).
-    - `status`: `Status`; `iterations`: simplex + LM steps.
-    - `rms`: weighted RMS residual; `rel_rms`: `rms` / RMS of the data.
+    - `status`: `Status`: the worst of non-finite values, a singular inner
+      $(K_d, K_s)$ system (`ill_conditioned`), all-zero data (`no_signal`),
+      and the simplex's and LM's own outcomes (`status_from_optimistix`).
+    - `iterations`: simplex + LM steps.
+    - `rms`: weighted RMS residual; `rel_rms`: `rms` / RMS of the data (never NaN).
     - `texel_count`: `(T,)` samples per texel (textured fits), else `None`.
+    - `stats`: `num_steps_simplex`, `num_steps_lm` (0 without refinement),
+      `grid_points` (starting grid size), `n_obs` (weighted samples × channels),
+      `at_bound`: `{"mu": bool, "sigma": bool}` the parameter stopped at its
+      bound of the search box (`MU_BOUNDS`, `SIGMA_BOUNDS`; the data do not
+      determine it: its standard error is `inf`), `undetermined`: the same
+      dict, also True where the one-sigma error exceeds $\\mu - 1$ (resp. $\\sigma$).
     """
 
     brdf: TorranceSparrow
@@ -61,20 +74,14 @@ class BRDFResult(eqx.Module):
     rms: Float[Array, ""]
     rel_rms: Float[Array, ""]
     texel_count: Int[Array, " T"] | None
+    stats: dict
+
+    @property
+    def estimate(self) -> TorranceSparrow:
+        return self.brdf
 
 
 # --------------------------------------------------------------------------- inner linear problems
-
-
-def _solve2(a11, a12, a22, r1, r2):
-    """Solve [[a11, a12], [a12, a22]] x = r elementwise; flags near-singular systems."""
-    det = a11 * a22 - a12 * a12
-    eps = jnp.finfo(det.dtype).eps
-    bad = ~(det > 1e3 * eps * a11 * a22) | ~(a11 > 0) | ~(a22 > 0)
-    det_s = jnp.where(bad, 1.0, det)
-    x1 = (a22 * r1 - a12 * r2) / det_s
-    x2 = (a11 * r2 - a12 * r1) / det_s
-    return jnp.where(bad, 0.0, x1), jnp.where(bad, 0.0, x2), bad
 
 
 def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
@@ -84,7 +91,7 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     """
     wd, ws = w[:, None] * D, w[:, None] * S
     if textured is None:
-        kd, ks, bad = _solve2(
+        kd, ks, bad = solve_sym2(
             jnp.sum(wd * D, 0), jnp.sum(wd * S, 0), jnp.sum(ws * S, 0), jnp.sum(wd * b, 0), jnp.sum(ws * b, 0)
         )
         return kd, ks, jnp.any(bad)
@@ -95,15 +102,10 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     dd, ds, ss, db, sb = seg(wd * D), seg(wd * S), seg(ws * S), seg(wd * b), seg(ws * b)
     observed = seg(w) > 0
     if textured == "kd_ks":
-        kd, ks, bad = _solve2(dd, ds, ss, db, sb)
+        kd, ks, bad = solve_sym2(dd, ds, ss, db, sb)
         return kd, ks, jnp.any(bad & observed[:, None])
     # textured == "kd": one ks per channel, kd per texel. Eliminate kd_t (Schur complement).
-    dd_s = jnp.where(dd > 0, dd, 1.0)
-    num = jnp.sum(sb, 0) - jnp.sum(jnp.where(dd > 0, ds * db / dd_s, 0.0), 0)
-    den = jnp.sum(ss, 0) - jnp.sum(jnp.where(dd > 0, ds * ds / dd_s, 0.0), 0)
-    bad = ~(den > 1e3 * jnp.finfo(den.dtype).eps * jnp.sum(ss, 0))
-    ks = jnp.where(bad, 0.0, num / jnp.where(bad, 1.0, den))
-    kd = jnp.where(dd > 0, (db - ks[None, :] * ds) / dd_s, 0.0)
+    kd, ks, bad = solve_grouped_shared(dd, ds, ss, db, sb)
     return kd, jnp.broadcast_to(ks, kd.shape), jnp.any(bad)
 
 
@@ -126,6 +128,23 @@ def _to_natural(u, fresnel: bool):
     return None, jnp.exp(u[0])
 
 
+# Box of the simplex / LM in the coordinates u = (log(mu - 1), log sigma): mu in [1.001, 10], sigma in
+# [1e-3, 1.5] rad. A parameter the data do not determine (directional lights and near-normal views leave
+# F(mu) flat) would otherwise run off towards mu -> 1 or mu -> inf until max_steps; it stops at the box
+# instead, flagged in `stats["at_bound"]` with an infinite standard error.
+MU_BOUNDS = (1.0 + 1e-3, 10.0)
+SIGMA_BOUNDS = (1e-3, 1.5)
+_AT_BOUND_TOL = 1e-3  # in log units
+
+
+def _u_bounds(fresnel: bool, dt):
+    lo = [np.log(MU_BOUNDS[0] - 1.0), np.log(SIGMA_BOUNDS[0])]
+    hi = [np.log(MU_BOUNDS[1] - 1.0), np.log(SIGMA_BOUNDS[1])]
+    if not fresnel:
+        lo, hi = lo[1:], hi[1:]
+    return jnp.asarray(lo, dt), jnp.asarray(hi, dt)
+
+
 def _to_u(mu, sigma, fresnel: bool, dt):
     s = jnp.log(jnp.asarray(sigma, dt))
     if fresnel:
@@ -139,7 +158,7 @@ def _to_u(mu, sigma, fresnel: bool, dt):
 @blas_single_thread
 def fit_brdf(
     obs: Observations,
-    lighting: Lighting,
+    lighting: Lighting | Sequence[Lighting],
     *,
     fresnel: bool = True,
     textured: str | None = None,
@@ -148,6 +167,7 @@ def fit_brdf(
     max_steps: int = 400,
     rtol: float | None = None,
     atol: float | None = None,
+    throw: bool = False,
 ) -> BRDFResult:
     """Recover $K_d, K_s, \\mu, \\sigma$ under known lighting (R&H sec. 6.1, eq. 24; module docstring).
 
@@ -156,7 +176,9 @@ def fit_brdf(
     - `obs`: `Observations` (any number of views; visibility terms are used
       when present, R&H sec. 6.4).
     - `lighting`: the known `Lighting` (slow SH to $l \\gtrsim 3/\\sigma$ plus
-      fast sources).
+      fast sources), or a sequence of one `Lighting` per view of `obs`
+      (`obs.view_index`; e.g. one directional light per image, photometric
+      stereo). Memory stays $O(N)$ (`practical_terms_for`).
     - `fresnel`: fit $\\mu$ (True) or use $F = 1$ (False; `brdf.mu` is None).
     - `textured`: `None` (homogeneous), `"kd"` ($K_d$ per texel, one $K_s$)
       or `"kd_ks"` (both per texel); needs `obs.texel`.
@@ -164,14 +186,20 @@ def fit_brdf(
     - `refine`: joint Levenberg–Marquardt over all parameters (homogeneous).
     - `max_steps`, `rtol`, `atol`: simplex / LM limits (tolerances default to
       1e-8 in float64 and 1e-5 in float32).
+    - `throw`: raise `solvers.SolveError` unless the status is `converged`
+      (default False: check `result.status`).
 
     **Returns:** `BRDFResult`. Non-convergence and singular inner systems are
-    reported in `status`.
+    reported in `status`. $\\mu$ and $\\sigma$ are searched in the box
+    `MU_BOUNDS` = [1.001, 10], `SIGMA_BOUNDS` = [1e-3, 1.5] rad: when the data
+    do not determine one (e.g. only directional lights and near-normal views:
+    $F(\\mu, \\theta_o) \\approx 1$ for every $\\mu$), the fit converges with it at
+    the bound, `stats["at_bound"][name]` True and an infinite standard error,
+    instead of running to `max_steps_reached`.
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
-    if not isinstance(lighting, Lighting):
-        raise ValueError(f"`lighting` must be a solvers.Lighting, got {type(lighting).__name__}")
+    view_lightings(obs, lighting)  # one Lighting, or one per view: checked here, ValueError naming `lighting`
     if textured not in (None, "kd", "kd_ks"):
         raise ValueError(f"`textured` must be None, 'kd' or 'kd_ks', got {textured!r}")
     if textured is not None and (obs.texel is None or obs.n_texels < 1):
@@ -190,8 +218,9 @@ def fit_brdf(
         )
     else:
         u_grid = _to_u(init[0], init[1], fresnel, dt)[None, :]
-    return _fit_brdf(terms, obs.values, obs.weights, obs.texel, u_grid, obs.n_texels, fresnel, textured, refine,
-                     int(max_steps), rtol, atol)
+    res = _fit_brdf(terms, obs.values, obs.weights, obs.texel, u_grid, obs.n_texels, fresnel, textured, refine,
+                    int(max_steps), rtol, atol)
+    return finish(res, throw)
 
 
 @eqx.filter_jit
@@ -212,25 +241,39 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     # state: a float32 problem with x64 enabled would not trace); the model runs in the data's dtype.
     pdt = jnp.asarray(0.0).dtype
 
+    lo, hi = _u_bounds(fresnel, dt)
+    # outside the box: the value at the box plus a quadratic wall scaled by the data energy
+    wall = jnp.maximum(jnp.sum(w[:, None] * b * b), jnp.finfo(dt).tiny)
+
     def objective(u, _):
-        r, _aux = profiled(u.astype(dt))
-        return jnp.sum(r * r).astype(pdt)
+        u = u.astype(dt)
+        uc = jnp.clip(u, lo, hi)
+        r, _aux = profiled(uc)
+        return (jnp.sum(r * r) + wall * jnp.sum((u - uc) ** 2)).astype(pdt)
 
     # Start: best grid point (vmapped), then the simplex of R&H sec. 6.1.
     grid_vals = jax.vmap(lambda u: objective(u, None))(u_grid.astype(pdt))
     u0 = u_grid.astype(pdt)[jnp.argmin(jnp.where(jnp.isfinite(grid_vals), grid_vals, jnp.inf))]
     nm = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), u0, max_steps=max_steps, throw=False)
-    u = nm.value.astype(dt)
-    steps = nm.stats["num_steps"]
-    ok = nm.result == optx.RESULTS.successful
+    u = jnp.clip(nm.value.astype(dt), lo, hi)
+    # a parameter at the box after the simplex is held there by the joint refinement
+    at_lo, at_hi = u <= lo + _AT_BOUND_TOL, u >= hi - _AT_BOUND_TOL
+    pinned = at_lo | at_hi
+    steps_nm = nm.stats["num_steps"]
+    steps_lm = jnp.zeros_like(steps_nm)
+    st_nm = status_from_optimistix(nm.result)
+    st_lm = Status.converged
     _, (kd, ks, bad) = profiled(u)
     if refine and textured is None:
         c = b.shape[1]
 
         def resid(p, _):
             p = p.astype(dt)
-            mu, sigma = _to_natural(p[2 * c :], fresnel)
-            return (sw * (_model(terms, p[:c], p[c : 2 * c], mu, sigma, texel) - b)).reshape(-1).astype(pdt)
+            uu = jnp.where(pinned, u, p[2 * c :])
+            uc = jnp.clip(uu, lo, hi)
+            mu, sigma = _to_natural(uc, fresnel)
+            r = (sw * (_model(terms, p[:c], p[c : 2 * c], mu, sigma, texel) - b)).reshape(-1)
+            return jnp.concatenate([r, jnp.sqrt(wall) * (uu - uc)]).astype(pdt)
 
         p0 = jnp.concatenate([kd, ks, u]).astype(pdt)
         lm = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0, max_steps=max_steps,
@@ -238,24 +281,17 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         p1 = lm.value
         better = jnp.sum(resid(p1, None) ** 2) <= jnp.sum(resid(p0, None) ** 2)
         p = jnp.where(better & jnp.all(jnp.isfinite(p1)), p1, p0).astype(dt)
-        kd, ks, u = p[:c], p[c : 2 * c], p[2 * c :]
-        steps = steps + lm.stats["num_steps"]
-        ok = ok & (lm.result == optx.RESULTS.successful)
+        kd, ks, u = p[:c], p[c : 2 * c], jnp.clip(jnp.where(pinned, u, p[2 * c :]), lo, hi)
+        steps_lm = lm.stats["num_steps"]
+        st_lm = status_from_optimistix(lm.result)
     mu, sigma = _to_natural(u, fresnel)
     r = sw * (_model(terms, kd, ks, mu, sigma, texel) - b)
     rss = jnp.sum(r * r)
+    at_bound = (u <= lo + _AT_BOUND_TOL) | (u >= hi - _AT_BOUND_TOL)
+    bound_mu = at_bound[0] if fresnel else jnp.asarray(False)
+    bound_sigma = at_bound[-1]
 
     # Standard errors from the Jacobian in natural parameters.
-    def cov_from(J, n_par):
-        jtj = J.T @ J
-        s2 = rss / jnp.maximum(nobs - n_par, 1.0)
-        evals, evecs = jnp.linalg.eigh(jtj)
-        tiny = evals <= jnp.finfo(dt).eps * jnp.max(evals) * jtj.shape[0]
-        inv = jnp.where(tiny, 0.0, 1.0 / jnp.where(tiny, 1.0, evals))
-        cov = (evecs * inv[None, :]) @ evecs.T * s2
-        undetermined = (jnp.abs(evecs) * tiny.astype(dt)[None, :]).max(axis=1) > 1e-6
-        return cov, undetermined
-
     def nat_params(th):
         return th[:-2], (th[-2] if fresnel else None), th[-1]
 
@@ -270,8 +306,9 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         J = jax.jacfwd(resid_nat)(th)
         if not fresnel:
             J = J.at[:, 2 * c].set(0.0)
-        cov, undet = cov_from(J, J.shape[1] - (0 if fresnel else 1))
-        se = jnp.where(undet, jnp.inf, jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)))
+        # a parameter held at its bound is not estimated: zero column -> infinite standard error
+        J = J.at[:, 2 * c].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 2 * c + 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
+        cov, se = covariance_from_jacobian(J, rss, nobs, J.shape[1] - (0 if fresnel else 1))
         std = TorranceSparrow(se[:c], se[c : 2 * c], se[2 * c] if fresnel else None, se[2 * c + 1])
         counts = None
     else:
@@ -287,9 +324,9 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         J = jax.jacfwd(resid_prof)(th2)
         if not fresnel:
             J = J.at[:, 0].set(0.0)
+        J = J.at[:, 0].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
         n_par = kd.size + (ks.shape[-1] if textured == "kd" else ks.size) + (2 if fresnel else 1)
-        cov, undet = cov_from(J, n_par)
-        se2 = jnp.where(undet, jnp.inf, jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)))
+        cov, se2 = covariance_from_jacobian(J, rss, nobs, n_par)
         # Texel K_d (and K_s) errors, conditional on mu, sigma: diagonal of the per-texel 2x2 inverse.
         D = terms.diffuse_unit()
         S = terms.specular_unit(mu, sigma)
@@ -302,30 +339,32 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         counts = jax.ops.segment_sum(jnp.ones_like(w, dtype=jnp.int32), texel, num_segments=n_texels)
         if textured == "kd_ks":
             ds, ss = seg(w[:, None] * D * S), seg(w[:, None] * S * S)
-            det = dd * ss - ds * ds
-            okd = det > 0
-            se_kd = jnp.where(okd, jnp.sqrt(s2 * ss / jnp.where(okd, det, 1.0)), jnp.inf)
-            se_ks = jnp.where(okd, jnp.sqrt(s2 * dd / jnp.where(okd, det, 1.0)), jnp.inf)
+            v_kd, v_ks, okd = inverse_sym2_diag(dd, ds, ss)
+            se_kd = jnp.where(okd, jnp.sqrt(s2 * v_kd), jnp.inf)
+            se_ks = jnp.where(okd, jnp.sqrt(s2 * v_ks), jnp.inf)
         else:
             se_kd = jnp.where(dd > 0, jnp.sqrt(s2 / jnp.where(dd > 0, dd, 1.0)), jnp.inf)
             se_ks = jnp.full(ks.shape, jnp.nan, dt)
         std = TorranceSparrow(se_kd, se_ks, se2[0] if fresnel else None, se2[1])
 
     finite = jnp.isfinite(rss) & jnp.all(jnp.isfinite(kd)) & jnp.isfinite(sigma)
-    status = jnp.where(
-        ~finite, 2, jnp.where(bad, 3, jnp.where(ok, 0, 1))
+    data_ss = jnp.sum(w[:, None] * b * b)
+    status = worst(
+        Status.where(finite, Status.converged, Status.nonfinite),
+        signal_status(data_ss),
+        Status.where(bad, Status.ill_conditioned, Status.converged),
+        st_nm,
+        st_lm,
     )
-    status = _status_from_code(status)
-    rms = jnp.sqrt(rss / nobs)
-    data_rms = jnp.sqrt(jnp.sum(w[:, None] * b * b) / nobs)
+    rms, rel = rms_pair(rss, data_ss, nobs)
     brdf = TorranceSparrow(kd, ks, mu, sigma)
-    return BRDFResult(brdf, std, cov, status, steps, rms, rms / data_rms, counts)
-
-
-def _status_from_code(code):
-    """Map 0..3 to Status items (converged, max_steps_reached, nonfinite, ill_conditioned)."""
-    out = Status.converged
-    out = Status.where(code == 1, Status.max_steps_reached, out)
-    out = Status.where(code == 2, Status.nonfinite, out)
-    out = Status.where(code == 3, Status.ill_conditioned, out)
-    return out
+    at_bound_d = {"mu": bound_mu, "sigma": bound_sigma}
+    # undetermined: at the box, or a one-sigma error larger than the distance to the limit (mu - 1, sigma)
+    undetermined = {
+        "mu": bound_mu | (~(std.mu < mu - 1.0) if fresnel else jnp.asarray(False)),
+        "sigma": bound_sigma | ~(std.sigma < sigma),
+    }
+    stats = {"num_steps_simplex": steps_nm, "num_steps_lm": steps_lm, "grid_points": jnp.asarray(u_grid.shape[0]),
+             "n_obs": nobs, "at_bound": at_bound_d, "undetermined": undetermined}
+    return BRDFResult(brdf=brdf, std_errors=std, covariance=cov, status=status, iterations=steps_nm + steps_lm, rms=rms,
+                      rel_rms=rel, texel_count=counts, stats=stats)

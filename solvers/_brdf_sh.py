@@ -21,17 +21,32 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int, Real
+from jaxtyping import Array, Float, Int
 
 import jaxsh
 
-from ._data import Observations, Status
+from ._data import Lighting, Observations, view_lightings
+
+
+def _is_number_list(x) -> bool:
+    """A nested list of numbers (an SH array given as lists), not a sequence of `Lighting`."""
+    return isinstance(x, (list, tuple)) and len(x) > 0 and not isinstance(x[0], Lighting)
+from ._results import Solution, Status, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 
-class BRDFSHResult(eqx.Module):
-    """Result of `fit_brdf_sh`: `rho` `(lmax+1, lmax+1, lmax+1, C)`, `rank` `(C,)` of the design
-    matrix, `n_unknowns` (entries with $q \\le \\min(l, p)$), `status`, `rms`, `rel_rms`."""
+class BRDFSHResult(Solution):
+    """Result of `fit_brdf_sh` (a `solvers.Solution`; `estimate` is `rho`).
+
+    - `rho`: `(lmax+1, lmax+1, lmax+1, C)` the coefficients $\\hat\\rho_{lpq}$.
+    - `rank`: `(C,)` numerical rank of the weighted design matrix.
+    - `n_unknowns`: entries with $q \\le \\min(l, p)$ (static).
+    - `status`: `converged`, `nonfinite` or `no_signal` (a rank below
+      `n_unknowns` is reported by `rank`, the solution being minimum-norm).
+    - `iterations`: 0 (a direct solve); `rms`, `rel_rms` (never NaN).
+    - `stats`: `singular_values` `(C, n_unknowns)` of the design matrix
+      (descending), `n_obs` (weighted samples × channels).
+    """
 
     rho: Float[Array, "l p q C"]
     rank: Int[Array, " C"]
@@ -39,6 +54,12 @@ class BRDFSHResult(eqx.Module):
     status: Status
     rms: Float[Array, ""]
     rel_rms: Float[Array, ""]
+    iterations: Int[Array, ""]
+    stats: dict
+
+    @property
+    def estimate(self) -> Float[Array, "l p q C"]:
+        return self.rho
 
 
 def _frame_angles(n, v):
@@ -54,12 +75,14 @@ def _frame_angles(n, v):
     return alpha, beta, wo
 
 
-def brdf_sh_design(normals, views, L_complex, lmax: int):
-    """Design rows d B / d rho[l, p, q] for each pixel: `(N, lmax+1, lmax+1, lmax+1)` (eqs. 9, 10)."""
+def brdf_sh_design(normals, views, L_complex, lmax: int, view_index=None):
+    """Design rows d B / d rho[l, p, q] for each pixel: `(N, lmax+1, lmax+1, lmax+1)` (eqs. 9, 10).
+
+    `L_complex` `(n,)` is one lighting for all pixels, or `(K, n)` one per view with `view_index` `(N,)`.
+    """
     alpha, beta, wo = _frame_angles(normals, views)
     dt = normals.dtype
-
-    def one(a, b, w):
+    def one(a, b, w, L_complex=L_complex):
         basis = jaxsh.light_field_basis(a, b, w, lmax)
 
         def bval(rho):
@@ -67,26 +90,53 @@ def brdf_sh_design(normals, views, L_complex, lmax: int):
 
         return jax.grad(bval)(jnp.zeros((lmax + 1,) * 3, dt))
 
+    if view_index is not None:
+        return jax.vmap(lambda a, b, w, k: one(a, b, w, L_complex[k]))(alpha, beta, wo, view_index)
     return jax.vmap(one)(alpha, beta, wo)
 
 
 @blas_single_thread
-def fit_brdf_sh(obs: Observations, lighting_sh: Real[ArrayLike, "n_coeffs C"], lmax: int, *, rcond: float | None = None) -> BRDFSHResult:
+def fit_brdf_sh(
+    obs: Observations,
+    lighting_sh,
+    lmax: int,
+    *,
+    rcond: float | None = None,
+    throw: bool = False,
+) -> BRDFSHResult:
     """Solve for $\\hat\\rho_{lpq}$, $l, p \\le$ `lmax`, from images of a sphere under known lighting (module docstring).
 
     **Arguments:** `obs` (convex object: no visibility terms); `lighting_sh`
-    real SH lighting `(n_coeffs, C)` with at least `lmax`; `lmax` static;
-    `rcond` for the SVD (default 1e-10 in float64, 1e-5 in float32).
+    real SH lighting `(n_coeffs, C)` with at least `lmax`, a `solvers.Lighting`
+    (all of it, as SH to `lmax`: `Lighting.total_sh`), or a sequence of one
+    `Lighting` per view of `obs` (`obs.view_index`; each view's design rows use
+    its own lighting, memory $O(N)$); `lmax` static;
+    `rcond` for the SVD (default 1e-10 in float64, 1e-5 in float32);
+    `throw`: raise `solvers.SolveError` unless the status is `converged`.
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
     if obs.transfer is not None or obs.reflected_visibility is not None:
         raise ValueError("fit_brdf_sh: the SH light-field model (eqs. 9, 10) has no shadowing; use a convex object")
     lmax = int(lmax)
+    n = jaxsh.num_coeffs(lmax)
+    lights = view_lightings(obs, lighting_sh, "lighting_sh") if not isinstance(lighting_sh, (Lighting, jax.Array, np.ndarray)) and not _is_number_list(lighting_sh) else None
+    if isinstance(lighting_sh, Lighting):
+        lighting_sh = lighting_sh.total_sh(lmax)
+    if lights is not None:
+        c = obs.n_channels
+        for k, lit in enumerate(lights):
+            if lit.n_channels not in (1, c):
+                raise ValueError(f"`lighting_sh[{k}]` has {lit.n_channels} channels, the images {c}")
+        L = jnp.stack([jnp.broadcast_to(lit.total_sh(lmax).astype(obs.values.dtype), (n, c)) for lit in lights])
+        dt = obs.values.dtype
+        rcond = (1e-10 if dt == jnp.float64 else 1e-5) if rcond is None else float(rcond)
+        ls, ps, qs = np.meshgrid(np.arange(lmax + 1), np.arange(lmax + 1), np.arange(lmax + 1), indexing="ij")
+        valid = (qs <= np.minimum(ls, ps)).reshape(-1)
+        return finish(_fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond), throw)
     L = jnp.asarray(lighting_sh, obs.values.dtype)
     if L.ndim == 1:
         L = L[:, None]
-    n = jaxsh.num_coeffs(lmax)
     if L.ndim != 2 or L.shape[0] < n or L.shape[1] not in (1, obs.n_channels):
         raise ValueError(f"`lighting_sh` must have shape (>= {n}, {obs.n_channels}), got {tuple(L.shape)}")
     L = jnp.broadcast_to(L[:n], (n, obs.n_channels))
@@ -94,31 +144,37 @@ def fit_brdf_sh(obs: Observations, lighting_sh: Real[ArrayLike, "n_coeffs C"], l
     rcond = (1e-10 if dt == jnp.float64 else 1e-5) if rcond is None else float(rcond)
     ls, ps, qs = np.meshgrid(np.arange(lmax + 1), np.arange(lmax + 1), np.arange(lmax + 1), indexing="ij")
     valid = (qs <= np.minimum(ls, ps)).reshape(-1)
-    return _fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond)
+    return finish(_fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond), throw)
 
 
 @eqx.filter_jit
 def _fit_brdf_sh(obs, L, lmax, cols, rcond):
-    lc = jaxsh.real_to_complex_coeffs(L, channels=True)  # (n, C) complex
+    per_view = L.ndim == 3  # (K, n, C): one lighting per view
+    if per_view:
+        lc = jax.vmap(lambda x: jaxsh.real_to_complex_coeffs(x, channels=True))(L)  # (K, n, C)
+    else:
+        lc = jaxsh.real_to_complex_coeffs(L, channels=True)  # (n, C) complex
     sw = jnp.sqrt(obs.weights)
 
     def channel(lcc, b):
-        a = brdf_sh_design(obs.normals, obs.views, lcc, lmax).reshape(obs.n_samples, -1)[:, cols]
+        vi = obs.view_index if per_view else None
+        a = brdf_sh_design(obs.normals, obs.views, lcc, lmax, vi).reshape(obs.n_samples, -1)[:, cols]
         a = a * sw[:, None]
         u, s, vt = jnp.linalg.svd(a, full_matrices=False)
         keep = s > rcond * s[0]
         x = vt.T @ (jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0) * (u.T @ (sw * b)))
         r = a @ x - sw * b
-        return x, jnp.sum(keep), jnp.sum(r * r)
+        return x, jnp.sum(keep), jnp.sum(r * r), s
 
-    x, rank, rss = jax.vmap(channel, in_axes=(1, 1))(lc, obs.values)
-    c = L.shape[1]
+    x, rank, rss, sv = jax.vmap(channel, in_axes=(2 if per_view else 1, 1))(lc, obs.values)
+    c = L.shape[-1]
     rho = jnp.zeros(((lmax + 1) ** 3, c), obs.values.dtype).at[cols].set(x.T).reshape((lmax + 1,) * 3 + (c,))
     nobs = jnp.sum((obs.weights > 0).astype(rss.dtype)) * c
-    rms = jnp.sqrt(jnp.sum(rss) / nobs)
-    rel = rms / jnp.sqrt(jnp.sum(obs.weights[:, None] * obs.values**2) / nobs)
-    status = Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite)
-    return BRDFSHResult(rho, rank, int(cols.shape[0]), status, rms, rel)
+    data_ss = jnp.sum(obs.weights[:, None] * obs.values**2)
+    rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
+    status = worst(Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite), signal_status(data_ss))
+    return BRDFSHResult(rho=rho, rank=rank, n_unknowns=int(cols.shape[0]), status=status, rms=rms, rel_rms=rel,
+                        iterations=jnp.asarray(0), stats={"singular_values": sv, "n_obs": nobs})
 
 
 def predict_brdf_sh(rho, lighting_sh, normals, views):

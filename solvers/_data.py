@@ -4,10 +4,9 @@
   to `N` samples (normal, view, radiance, weight, optional visibility terms
   and texel index). Build it with `observations(gbuffers, images, ...)`,
   which validates the images and drops or rejects bad pixels.
-* `Lighting`: slow SH lighting plus fast (delta) sources, the two parts of
-  the practical model (R&H sec. 5.3).
-* `TorranceSparrow`: the BRDF parameters $K_d, K_s, \\mu, \\sigma$ of R&H
-  sec. 5.2, with optional texture maps for $K_d$ / $K_s$ (sec. 6.4).
+* `Lighting`, `TorranceSparrow`: `jaxsh.Lighting` and `jaxsh.TorranceSparrow`
+  (the same objects, re-exported): the lighting of R&H sec. 5.3 and the BRDF
+  parameters of sec. 5.2.
 * `Status`: the outcome of a solve. Every solver result carries one; a
   failed solve is a status, never a silent NaN.
 """
@@ -22,65 +21,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
+from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
 from ._results import Status as Status, status_name as status_name  # re-exported for older imports
-
-
-class Lighting(eqx.Module):
-    """Distant lighting in the world frame (+z up): slow SH part plus fast delta sources.
-
-    **Fields:**
-
-    - `slow_sh`: `(n_coeffs, C)` real SH coefficients or `None`.
-    - `fast_directions`: `(J, 3)` unit directions towards the sources, or `None`.
-    - `fast_energy`: `(J, C)` total energy $L_j$ of each source (eq. 23), or `None`.
-    """
-
-    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None
-    fast_directions: Real[ArrayLike, "J 3"] | Sequence[Sequence[float]] | None = None
-    fast_energy: Real[ArrayLike, "J C"] | Sequence[Sequence[float]] | None = None
-
-    def __check_init__(self):
-        if self.slow_sh is None and self.fast_directions is None:
-            raise ValueError("Lighting needs `slow_sh` and/or `fast_directions` + `fast_energy`")
-        if (self.fast_directions is None) != (self.fast_energy is None):
-            raise ValueError("Lighting: `fast_directions` and `fast_energy` go together")
-
-    @property
-    def lmax(self) -> int | None:
-        if self.slow_sh is None:
-            return None
-        return int(round(np.sqrt(self.slow_sh.shape[0]))) - 1
-
-    def total_sh(self, lmax: int) -> Float[Array, "n_coeffs C"]:
-        """SH coefficients of all of the lighting (fast sources projected as deltas) to `lmax`."""
-        parts = []
-        if self.slow_sh is not None:
-            s = jnp.asarray(self.slow_sh)
-            n = jaxsh.num_coeffs(lmax)
-            s = s[:n] if s.shape[0] >= n else jnp.pad(s, ((0, n - s.shape[0]), (0, 0)))
-            parts.append(s)
-        if self.fast_directions is not None:
-            parts.append(jaxsh.directional_light_sh(self.fast_directions, self.fast_energy, lmax))
-        out = parts[0]
-        for p in parts[1:]:
-            out = out + p
-        return out
-
-
-class TorranceSparrow(eqx.Module):
-    """R&H sec. 5.2 BRDF parameters: $\\rho = K_d + K_s F(\\mu,\\theta_o) S / (4\\cos\\theta_i\\cos\\theta_o)$.
-
-    `kd`, `ks`: `(C,)` homogeneous, or `(T, C)` per texel (with
-    `Observations.texel`). `mu`: scalar index of refraction, or `None` for
-    no Fresnel term ($F = 1$, metals in R&H fig. 11). `sigma`: scalar
-    roughness (radians).
-    """
-
-    kd: Float[Array, "*T C"]
-    ks: Float[Array, "*T C"]
-    mu: Float[Array, ""] | None
-    sigma: Float[Array, ""]
 
 
 class Observations(eqx.Module):
@@ -287,38 +230,196 @@ def observations(
     )
 
 
-def practical_terms_for(obs: Observations, lighting: Lighting, chunk: int = 8192) -> jaxsh.PracticalTerms:
-    """`jaxsh.practical_terms` of the observed pixels under `lighting` (visibility included)."""
-    if lighting.fast_directions is not None and obs.fast_visibility is not None:
-        if obs.fast_visibility.shape[1] != lighting.fast_directions.shape[0]:
-            raise ValueError(
-                f"`Observations.fast_visibility` has {obs.fast_visibility.shape[1]} sources, the lighting "
-                f"has {lighting.fast_directions.shape[0]}"
-            )
+def view_lightings(obs: Observations, lighting, name: str = "lighting") -> list[Lighting] | None:
+    """`None` for one `Lighting`; for a sequence, the list of one `Lighting` per view of `obs`, checked.
+
+    The sequence must have `len(obs.image_shapes)` entries (one per view,
+    indexed by `obs.view_index`), each a `Lighting` without disk sources,
+    with `C` or 1 channels. Raises `ValueError` naming `name`.
+    """
+    if isinstance(lighting, Lighting):
+        return None
+    if isinstance(lighting, (str, bytes)) or not isinstance(lighting, Sequence):
+        raise ValueError(
+            f"`{name}` must be a solvers.Lighting or a sequence of one Lighting per view, got {type(lighting).__name__}"
+        )
+    lights = list(lighting)
+    n_views = len(obs.image_shapes)
+    if len(lights) != n_views:
+        raise ValueError(f"`{name}` must have one Lighting per view ({n_views}, matching `obs.view_index`), got {len(lights)}")
+    for k, lit in enumerate(lights):
+        if not isinstance(lit, Lighting):
+            raise ValueError(f"`{name}[{k}]` must be a solvers.Lighting, got {type(lit).__name__}")
+        if lit.has_disks:
+            raise ValueError(f"`{name}[{k}]` has disk sources: split them first (`Lighting.split_disks(sigma, lmax)`)")
+    c = max(lit.n_channels for lit in lights)
+    for k, lit in enumerate(lights):
+        if lit.n_channels not in (1, c):
+            raise ValueError(f"`{name}[{k}]` has {lit.n_channels} channels, other views {c}: all views must share C (or 1)")
+    return lights
+
+
+def practical_terms_for(obs: Observations, lighting, chunk: int = 8192) -> jaxsh.PracticalTerms:
+    """`jaxsh.practical_terms` of the observed pixels under `lighting`, with the visibility terms of `obs`.
+
+    `lighting` is one `Lighting` for every view, or a sequence of one
+    `Lighting` per view (`obs.view_index`; photometric stereo, light stages).
+    Per view, the terms are computed with that view's lighting and the rows
+    concatenated, so memory stays $O(N)$ (not $O(N \\times$ views$)$): the slow
+    bands are zero-padded to the largest $l_{max}$, and the fast sources (a
+    view has $J_k \\le J$ of them) are stored per pixel: `theta_h` and
+    `fast_weight` get $J\\,C$ columns (source $j$, channel $c$), `fast_weight`
+    holding $V_j L_{j,c}$, and `fast_energy` is the $(J C, C)$ channel
+    selector, so that `specular_unit`, `diffuse_unit` and `components` are
+    R&H eq. 24 under each pixel's own lighting. `obs.fast_visibility` columns
+    are the view's sources in order (extra columns are ignored).
+
+    The visibility terms of a lighting part that `lighting` lacks are not used.
+    """
+    lights = view_lightings(obs, lighting)
+    if lights is None:
+        return _terms_one(obs, lighting, chunk)
+    vi = np.asarray(obs.view_index)
+    dt = obs.normals.dtype
+    c = max(lit.n_channels for lit in lights)
+    lmax = max((lit.lmax for lit in lights if lit.slow_sh is not None), default=0)
+    jmax = max((0 if lit.fast_directions is None else lit.fast_directions.shape[0]) for lit in lights)
+    if obs.fast_visibility is not None and jmax > obs.fast_visibility.shape[1]:
+        raise ValueError(
+            f"`obs.fast_visibility` has {obs.fast_visibility.shape[1]} columns, `lighting` has up to {jmax} fast sources per view"
+        )
+    fold = jmax > 0 and c > 1
+    jc = jmax * c if fold else jmax
+    parts, order = [], []
+    for k, lit in enumerate(lights):
+        idx = np.nonzero(vi == k)[0]
+        if idx.size == 0:
+            continue
+        sub = obs.subset(idx)
+        j = 0 if lit.fast_directions is None else lit.fast_directions.shape[0]
+        if sub.fast_visibility is not None and j > 0 and sub.fast_visibility.shape[1] != j:
+            sub = eqx.tree_at(lambda o: o.fast_visibility, sub, sub.fast_visibility[:, :j])
+        t = _terms_one(sub, lit, chunk)
+        n = idx.size
+        irr = jnp.broadcast_to(t.irradiance, (n, c))
+        bands = jnp.broadcast_to(t.bands, (n, t.bands.shape[1], c))
+        bands = jnp.pad(bands, ((0, 0), (0, lmax + 1 - bands.shape[1]), (0, 0)))
+        en = jnp.broadcast_to(t.fast_energy, (j, c))
+        if fold:  # column j*c + c': theta_h_j, V_j L_{j,c'}
+            th = jnp.repeat(t.theta_h, c, axis=1)
+            fw = (t.fast_weight[:, :, None] * en[None, :, :]).reshape(n, j * c)
+        else:  # one channel: V_j L_j
+            th = t.theta_h
+            fw = t.fast_weight * en[:, 0][None, :] if j > 0 else t.fast_weight
+        pad = ((0, 0), (0, jc - th.shape[1]))
+        parts.append((t.visible, t.cos_o, irr, bands, jnp.pad(th, pad), jnp.pad(fw, pad)))
+        order.append(idx)
+    perm = np.concatenate(order)
+    cols = [jnp.concatenate([p[i] for p in parts]) for i in range(6)]
+    if not np.array_equal(perm, np.arange(perm.size)):
+        inv = jnp.asarray(np.argsort(perm))
+        cols = [x[inv] for x in cols]
+    energy = jnp.tile(jnp.eye(c, dtype=dt), (jmax, 1)) if fold else jnp.ones((jmax, 1), dt)
+    return jaxsh.PracticalTerms(*cols, energy)
+
+
+def _terms_one(obs: Observations, lighting: Lighting, chunk: int) -> jaxsh.PracticalTerms:
+    if not isinstance(lighting, Lighting):
+        raise ValueError(f"`lighting` must be a solvers.Lighting, got {type(lighting).__name__}")
     return jaxsh.practical_terms(
-        obs.normals, obs.views, slow_sh=lighting.slow_sh, fast_directions=lighting.fast_directions,
-        fast_energy=lighting.fast_energy, transfer=None if lighting.slow_sh is None else obs.transfer,
+        obs.normals, obs.views, lighting, chunk=chunk,
+        transfer=None if lighting.slow_sh is None else obs.transfer,
         fast_visibility=None if lighting.fast_directions is None else obs.fast_visibility,
-        reflected_visibility=None if lighting.slow_sh is None else obs.reflected_visibility, chunk=chunk,
+        reflected_visibility=None if lighting.slow_sh is None else obs.reflected_visibility,
     )
+
+
+def _per_view_arg(x, k: int, n_views: int, name: str):
+    """Entry `k` of a per-view keyword: a list/tuple of `n_views` arrays, or one array for every view."""
+    if isinstance(x, (list, tuple)):
+        if len(x) != n_views:
+            raise ValueError(f"`{name}` must be one array for every view or a list of {n_views} (one per lighting), got {len(x)}")
+        return x[k]
+    return x
+
+
+def _texel_brdf(brdf: TorranceSparrow, texel, batch: tuple, mask) -> TorranceSparrow:
+    """A per-texel `(T, C)` BRDF gathered into maps `(*batch, C)` by the int map `texel` `batch`."""
+    kd, ks = jnp.asarray(brdf.kd), jnp.asarray(brdf.ks)
+    if texel is None:
+        for name, x in (("kd", kd), ("ks", ks)):
+            if x.ndim >= 2:
+                try:
+                    ok = jnp.broadcast_shapes(x.shape, tuple(batch) + (x.shape[-1],)) == tuple(batch) + (x.shape[-1],)
+                except ValueError:
+                    ok = False
+                if not ok:
+                    raise ValueError(
+                        f"`brdf.{name}` has shape {tuple(x.shape)}, which is not a map over the pixels {tuple(batch)}: "
+                        f"for a per-texel result (T, C) pass `texel=` the {tuple(batch)} int texel map"
+                    )
+        return brdf
+    t = np.asarray(texel)
+    if not np.issubdtype(t.dtype, np.integer):
+        raise ValueError(f"`texel` must be an integer array of shape {tuple(batch)}, got dtype {t.dtype}")
+    if t.shape != tuple(batch):
+        raise ValueError(f"`texel` must have shape {tuple(batch)} (the pixels), got {t.shape}")
+    n_t = max(x.shape[0] if x.ndim == 2 else 1 for x in (kd, ks))
+    if kd.ndim != 2 and ks.ndim != 2:
+        raise ValueError(f"`texel` needs a per-texel BRDF (`brdf.kd` of shape (T, C)), got kd {tuple(kd.shape)}")
+    inside = np.ones(t.shape, bool) if mask is None else np.broadcast_to(np.asarray(mask, bool), t.shape)
+    if np.any((t[inside] < 0) | (t[inside] >= n_t)):
+        raise ValueError(f"`texel` has indices outside [0, {n_t}) inside the mask")
+    ti = jnp.asarray(np.clip(t, 0, n_t - 1))
+
+    def gather(x):
+        return x[ti] if x.ndim == 2 else x
+
+    return TorranceSparrow(gather(kd), gather(ks), brdf.mu, brdf.sigma)
 
 
 def predict(
     brdf: TorranceSparrow,
-    lighting: Lighting,
-    normals: Real[ArrayLike, "*#batch 3"],
-    views: Real[ArrayLike, "*#batch 3"],
+    lighting,
+    normals,
+    views,
+    *,
+    texel=None,
     **visibility,
-) -> Float[Array, "*batch C"]:
-    """Radiance of `brdf` under `lighting` at new normals / views: `jaxsh.render_practical(...).total`.
+):
+    """Radiance of `brdf` under `lighting` at new normals / views: `jaxsh.render_practical(normals, views, brdf, lighting).total`.
 
     For novel lighting and views from any solver result
     (`predict(result.brdf, new_lighting, gb.normal, gb.view, mask=gb.mask)`).
     Extra keyword arguments (`transfer`, `fast_visibility`,
     `reflected_visibility`, `mask`) go to `render_practical`.
+
+    - `lighting`: one `Lighting`, or a sequence of `K` (one per image, e.g.
+      one light each). Then `normals`, `views`, `texel` and every keyword are
+      one array for all images or a list of `K`; the result is a list of `K`
+      images if `normals` is a list, else an array `(K, *batch, C)`.
+    - `texel`: the `(*batch)` int texel map of a per-texel result
+      (`fit_brdf(..., textured="kd")`, `brdf.kd` of shape `(T, C)`): each
+      pixel takes its texel's $K_d$ (and $K_s$). Without it a `(T, C)` BRDF
+      that is not a pixel map is a `ValueError` naming `texel`.
     """
-    kd, ks = brdf.kd, brdf.ks
-    return jaxsh.render_practical(
-        normals, views, kd, ks, brdf.mu, brdf.sigma, slow_sh=lighting.slow_sh,
-        fast_directions=lighting.fast_directions, fast_energy=lighting.fast_energy, **visibility,
-    ).total
+    if isinstance(lighting, Lighting):
+        n = jnp.asarray(normals)
+        b = _texel_brdf(brdf, texel, tuple(n.shape[:-1]), visibility.get("mask"))
+        return jaxsh.render_practical(n, views, b, lighting, **visibility).total
+    if isinstance(lighting, (str, bytes)) or not isinstance(lighting, Sequence) or len(lighting) == 0:
+        raise ValueError(f"`lighting` must be a solvers.Lighting or a non-empty sequence of them, got {type(lighting).__name__}")
+    lights = list(lighting)
+    kk = len(lights)
+    out = []
+    for k, lit in enumerate(lights):
+        if not isinstance(lit, Lighting):
+            raise ValueError(f"`lighting[{k}]` must be a solvers.Lighting, got {type(lit).__name__}")
+        vis = {key: _per_view_arg(x, k, kk, key) for key, x in visibility.items()}
+        n = jnp.asarray(_per_view_arg(normals, k, kk, "normals"))
+        v = _per_view_arg(views, k, kk, "views")
+        b = _texel_brdf(brdf, _per_view_arg(texel, k, kk, "texel"), tuple(n.shape[:-1]), vis.get("mask"))
+        out.append(jaxsh.render_practical(n, v, b, lit, **vis).total)
+    if isinstance(normals, (list, tuple)):
+        return out
+    return jnp.stack(out)

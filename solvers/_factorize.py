@@ -1,32 +1,57 @@
 """Factorization: unknown lighting and BRDF (R&H 2001 sec. 6.3), and roughness from a source (eq. 26).
 
-**Algorithm (the paper's, restructured for speed, same minimum).** The
-global scale is unrecoverable, so $K_d + K_s = 1$ per channel (each
-channel's lighting absorbs its own scale). The paper's simplex over
-$(K_s, \\mu)$ with an inner inverse-lighting solve is run as two nested
-searches with the same objective, the RMS of the eq.-25 fit:
+**Objective.** The global scale is unrecoverable, so $K_d + K_s = 1$ per
+channel (each channel's lighting absorbs its own scale). As in the paper,
+the BRDF parameters are searched with the lighting profiled out: for given
+$(\\mu, K_s)$ the lighting is the eq.-25 least-squares solution, and the
+objective is the residual sum of squares of that fit (relative to the
+data's, summed over channels). The paper runs one simplex over
+$(K_s, \\mu)$; here the same objective is minimized by two nested 1-D
+searches (the channels decouple once $\\mu$ is fixed):
 
-* outer: `optimistix.NelderMead` over $\\log(\\mu - 1)$; each evaluation forms
-  the normal-equation blocks of eq. 25 for that $\\mu$ once (the expensive
-  part, $O(N n^2)$, optionally on a random pixel subset);
-* inner: per channel, a golden-section search over $K_s \\in [0, 1]$
-  ($K_d = 1 - K_s$), each step an $n \\times n$ Cholesky solve for $L_{lm}$.
+* **outer, over $t = \\log(\\mu - 1)$:** a grid of 9 values on
+  $[\\log 0.05, \\log 2.5]$ ($\\mu \\in [1.05, 3.5]$), evaluated in one jitted
+  call (`lax.map`); then two zooms, each a grid of 7 values over one old
+  grid step either side of the best point; then the parabola through the
+  best point of the last grid and its two neighbours gives the continuous
+  minimum (moved by at most one step) and, from its curvature, the standard
+  error of $\\mu$. That is 23 evaluations and three host round trips (the
+  zoom centres are chosen by `numpy.argmin` between the calls). Each
+  evaluation forms the normal-equation blocks of eq. 25 for that $\\mu$ once
+  (`accumulate_gram`, the expensive part, $O(N n^2)$, on a random subset of
+  `search_pixels` pixels) and the pseudo-inverse of their $l > 2$ block
+  (one eigendecomposition per $\\mu$);
+* **inner, over $K_s \\in [10^{-6}, 1]$ per channel** ($K_d = 1 - K_s$):
+  `optimistix.GoldenSearch`, `vmap`ped over the channels inside the same jit
+  (no host round trip), plus a check of the end point $K_s = 1$. Each step
+  eliminates the $l > 2$ coefficients with that pseudo-inverse and solves the
+  $9 \\times 9$ Schur complement of the $l \\le 2$ ones by unrolled Gaussian
+  elimination (no LAPACK call inside the loop; see `_normal_equations`).
 
-Then $\\sigma$ from the recovered (filtered) lighting with eq. 26,
-$L_{cen} \\approx L_{tot}/(4\\pi\\sigma^2)$, evaluated with the band limit
-taken into account: the brightest compact region is found automatically
-(or given by the user), and $\\sigma$ solves
+At the chosen $\\mu$ the search is repeated on all pixels and the lighting
+is solved as in `inverse_lighting` (the filtered lighting of eq. 25).
+
+**Roughness (eq. 26).** $\\sigma$ comes from the recovered (filtered)
+lighting with $L_{cen} \\approx L_{tot}/(4\\pi\\sigma^2)$, evaluated with the
+band limit taken into account: the brightest compact region is found
+automatically (or given by the user), and $\\sigma$ solves
 $\\frac{L_{cen} - b}{L_{tot} - b\\,\\Omega} = \\frac{f_\\sigma(0) - b_\\sigma}{\\int_{cap} f_\\sigma - b_\\sigma\\Omega}$,
 where $f_\\sigma(\\theta) = \\sum_{l \\le l^*}\\frac{2l+1}{4\\pi}e^{-(\\sigma l)^2}P_l(\\cos\\theta)$ is
 a unit delta source filtered by the lobe and truncated like the recovered
 lighting, and $b$, $b_\\sigma$ the background levels measured on the same
-annulus around each. For $l^* \\to \\infty$ this is eq. 26.
+annulus (radius to 1.5 × radius) around each. The root in $\\log\\sigma$,
+$\\sigma \\in [10^{-3}, 2]$, is found by `optimistix.Bisection` (the ratio
+decreases with $\\sigma$). For $l^* \\to \\infty$ this is eq. 26.
 
 **Joint refinement (optional).** With the source found, the lighting is
 modelled as slow SH up to $l^*$ (filtered by $e^{-(\\sigma l)^2}$, eq. 22) plus
 the source as a delta of unknown energy (eq. 23); the model is linear in
-the lighting given $(K_s, \\mu, \\sigma)$, and a simplex over those
-(variable projection) refines all of them together.
+the lighting given $(K_s, \\sigma)$, and `optimistix.NelderMead` over
+$(\\mathrm{logit}\\,K_s$ per channel$, \\log\\sigma)$, with $\\mu$ kept at its
+stage-1 value, minimizes the profiled residual on the search subset
+(variable projection). The final solve uses all pixels; the standard errors
+of $(K_s, \\sigma)$ come from the Hessian of the profiled RSS there, that of
+$\\mu$ from the stage-1 parabola.
 """
 
 from __future__ import annotations
@@ -40,12 +65,11 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
+from ._data import Lighting, Observations, TorranceSparrow
+from ._lighting import lighting_from_gram
+from ._normal_equations import Gram, accumulate_gram, eq25_rows, inverse_spd_unrolled, pinv_psd, solve_spd_unrolled
+from ._results import Solution, Status, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
-from ._data import Lighting, Observations, Status, TorranceSparrow
-from ._lighting import _finish, _gram, _Gram
-
-_GOLDEN = float(0.5 * (np.sqrt(5.0) - 1.0))  # a Python float: weakly typed, keeps float32
-
 
 class SourceEstimate(eqx.Module):
     """A compact source found in a recovered lighting (R&H fig. 10).
@@ -54,7 +78,7 @@ class SourceEstimate(eqx.Module):
     `peak` `(C,)` = $L_{cen}$ above the background; `background` `(C,)`;
     `radius`: the region's angular radius; `sigma`: the roughness from eq. 26
     with the band-limit correction (module docstring); `sigma_eq26`: the
-    plain $\\sqrt{L_{tot}/(4\\pi L_{cen})}$.
+    plain $\\sqrt{L_{tot}/(4\\pi L_{cen})}$; `num_steps`: the bisection's steps.
     """
 
     direction: Float[Array, "3"]
@@ -64,10 +88,11 @@ class SourceEstimate(eqx.Module):
     radius: Float[Array, ""]
     sigma: Float[Array, ""]
     sigma_eq26: Float[Array, ""]
+    num_steps: Int[Array, ""]
 
 
-class FactorizationResult(eqx.Module):
-    """Result of `factorize`.
+class FactorizationResult(Solution):
+    """Result of `factorize` (a `solvers.Solution`; `estimate` is `brdf`).
 
     - `brdf`: `TorranceSparrow` with $K_d + K_s = 1$ per channel.
     - `lighting`: the recovered lighting in the same scale — after the
@@ -78,7 +103,16 @@ class FactorizationResult(eqx.Module):
     - `source`: `SourceEstimate` (or None when `find_sigma=False`).
     - `std_errors`: `TorranceSparrow` (from the Jacobian of the profiled
       residual of the final stage; `kd` errors equal `ks` errors).
-    - `status`, `iterations`, `rms`, `rel_rms`.
+    - `status`: with the refinement, the worst of its simplex's outcome
+      (`status_from_optimistix`), `nonfinite` and `no_signal`; without it,
+      the status of the eq.-25 solve of stage 1 (as `inverse_lighting`).
+    - `iterations`: the $\\mu$ candidates evaluated (23 with `fresnel`) plus
+      the refinement's simplex steps.
+    - `rms`, `rel_rms` (never NaN) of the final stage, on all pixels.
+    - `stats`: `num_mu_candidates`, `num_steps_simplex` (0 without the
+      refinement), `num_steps_golden` (the $K_s$ searches of the final
+      stage-1 solve, per channel), `num_steps_bisection` (eq. 26; 0 without
+      `find_sigma`), `n_obs`.
     """
 
     brdf: TorranceSparrow
@@ -90,47 +124,27 @@ class FactorizationResult(eqx.Module):
     iterations: Int[Array, ""]
     rms: Float[Array, ""]
     rel_rms: Float[Array, ""]
+    stats: dict
+
+    @property
+    def estimate(self) -> TorranceSparrow:
+        return self.brdf
 
 
 # --------------------------------------------------------------------------- stage 1
 
 
-def _small_spd_solve(m, r):
-    """Solve SPD systems m x = r, batched over leading axes, by Gaussian elimination unrolled in Python.
-
-    For the 9x9 / 10x10 Schur complements inside the searches: plain XLA ops, no LAPACK
-    custom call (those deadlock or stall on re-execution inside XLA:CPU loops, measured)."""
-    k = m.shape[-1]
-    scale = jnp.maximum(jnp.max(jnp.abs(jnp.diagonal(m, axis1=-2, axis2=-1)), -1), jnp.finfo(m.dtype).tiny)
-    m = m + (jnp.finfo(m.dtype).eps * 16) * scale[..., None, None] * jnp.eye(k, dtype=m.dtype).reshape((1,) * (m.ndim - 2) + (k, k))
-    a = jnp.concatenate([m, r[..., None]], -1)
-    for i in range(k):
-        piv = a[..., i, i]
-        piv = jnp.where(jnp.abs(piv) > 0, piv, jnp.finfo(m.dtype).tiny)
-        row = a[..., i, :] / piv[..., None]
-        a = a - a[..., :, i : i + 1] * row[..., None, :]
-        a = a.at[..., i, :].set(row)
-    return a[..., :, -1]
-
-
-def _pinv_psd(a, rcond):
-    """Pseudo-inverse of a symmetric PSD matrix by eigendecomposition (eigenvalues < rcond·max dropped)."""
-    evals, evecs = jnp.linalg.eigh(a)
-    keep = evals > rcond * jnp.max(evals)
-    inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
-    return (evecs * inv[..., None, :]) @ jnp.swapaxes(evecs, -1, -2)
-
-
 class _Blocks(eqx.Module):
     """Normal-equation blocks of eq. 25 for one mu, split at the l <= 2 columns, with pinv(SS22)."""
 
-    g: _Gram
+    g: Gram
     p22: Array  # (n-9, n-9)
 
 
 def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float) -> _Blocks:
-    g = _gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, mu, None, lmax, chunk)
-    return _Blocks(g, _pinv_psd(g.ss[9:, 9:], rcond))
+    g = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, mu, None, lmax,
+                        chunk)
+    return _Blocks(g, pinv_psd(g.ss[9:, 9:], rcond))
 
 
 def _schur_rss(bl: _Blocks, kd, ks, filt, src=None):
@@ -162,34 +176,40 @@ def _schur_rss(bl: _Blocks, kd, ks, filt, src=None):
     yy = jnp.einsum("cij,ckj->cik", q, a12)  # (C, m, k)
     schur = a11 - jnp.einsum("ckj,cjl->ckl", a12, yy)
     rhs = r1 - jnp.einsum("ckj,cj->ck", a12, y)
-    x1 = _small_spd_solve(schur, rhs)
+    x1 = solve_spd_unrolled(schur, rhs)
     x2 = y - jnp.einsum("cjk,ck->cj", yy, x1)
     rss = g.bb - jnp.sum(r1 * x1, -1) - jnp.sum(r2 * x2, -1)
     return rss, x1, x2
 
 
-def _golden_ks(fn, c: int, dt, iters: int):
-    """Golden-section search of fn(ks (C,)) -> (C,) over [0, 1] per channel; endpoints checked."""
-    lo, hi = jnp.full((c,), 1e-6, dt), jnp.ones((c,), dt)
-    x1 = hi - _GOLDEN * (hi - lo)
-    x2 = lo + _GOLDEN * (hi - lo)
-    f1, f2 = fn(x1), fn(x2)
+def _channel_blocks(bl: _Blocks) -> _Blocks:
+    """`vmap` axes of `_Blocks` over the colour channel (the right-hand sides; the Gram matrices are shared)."""
+    return _Blocks(Gram(None, None, None, 1, 1, 0, None), None)
 
-    def body(_, st):
-        lo, hi, x1, x2, f1, f2 = st
-        left = f1 < f2
-        nlo = jnp.where(left, lo, x1)
-        nhi = jnp.where(left, x2, hi)
-        nx1 = jnp.where(left, nhi - _GOLDEN * (nhi - nlo), x2)
-        nx2 = jnp.where(left, x1, nlo + _GOLDEN * (nhi - nlo))
-        fnew = fn(jnp.where(left, nx1, nx2))
-        return nlo, nhi, nx1, nx2, jnp.where(left, fnew, f2), jnp.where(left, f1, fnew)
 
-    lo, hi, x1, x2, f1, f2 = jax.lax.fori_loop(0, iters, body, (lo, hi, x1, x2, f1, f2))
-    ks = jnp.where(f1 < f2, x1, x2)
-    fk = jnp.minimum(f1, f2)
-    f_hi = fn(jnp.ones_like(ks))
-    return jnp.where(f_hi < fk, 1.0, ks), jnp.minimum(f_hi, fk)
+def _golden_ks(bl: _Blocks, filt, rtol: float, atol: float, max_steps: int):
+    """Per channel, the $K_s \\in [0, 1]$ ($K_d = 1 - K_s$) minimizing the eq.-25 RSS: `optimistix.GoldenSearch`.
+
+    The channels are independent problems (each its own right-hand side), so the scalar search is
+    `vmap`ped over them, inside the caller's jit (one `while_loop`, no host round trip). The end point
+    $K_s = 1$ (a pure mirror) is checked as well. Returns `ks (C,)`, `rss (C,)`, `num_steps (C,)`.
+    """
+
+    def one(blc):
+        g = blc.g
+        bl1 = _Blocks(Gram(g.dd, g.ds, g.ss, g.db[:, None], g.sb[:, None], g.bb[None], g.count), blc.p22)
+
+        def rss(ks, _):
+            return _schur_rss(bl1, 1.0 - ks[None], ks[None], filt)[0][0]
+
+        dt = g.bb.dtype
+        sol = optx.minimise(rss, optx.GoldenSearch(rtol=rtol, atol=atol), jnp.asarray(0.5, dt),
+                            options=dict(lower=1e-6, upper=1.0), max_steps=max_steps, throw=False)
+        ks = jnp.clip(sol.value, 1e-6, 1.0)
+        f, f_hi = rss(ks, None), rss(jnp.ones((), dt), None)
+        return jnp.where(f_hi < f, 1.0, ks), jnp.minimum(f_hi, f), sol.stats["num_steps"]
+
+    return jax.vmap(one, in_axes=(_channel_blocks(bl),))(bl)
 
 
 # --------------------------------------------------------------------------- eq. 26
@@ -224,7 +244,9 @@ def find_source(
     - `height`: lat-long resolution used for the search (width = 2·height).
 
     **Returns:** `SourceEstimate`; `sigma` accounts for the band limit of
-    `coeffs` (module docstring), `sigma_eq26` is the paper's formula.
+    `coeffs` (module docstring; the root in $\\log\\sigma \\in [\\log 10^{-3}, \\log 2]$ by
+    `optimistix.Bisection`, the nearer end when the ratio lies outside),
+    `sigma_eq26` is the paper's formula.
     """
     coeffs = jnp.asarray(coeffs)
     if coeffs.ndim == 1:
@@ -293,17 +315,13 @@ def find_source(
         totm = jnp.sum(jnp.where(cap_m, f * sin_w, 0.0)) - bgm * jnp.sum(jnp.where(cap_m, sin_w, 0.0))
         return (f[0] - bgm) / totm
 
+    # model_ratio decreases with sigma: a root of model_ratio - ratio in log sigma in [log 1e-3, log 2]
+    # by optimistix.Bisection (flip: positive at the lower end); outside the bracket, the nearer end.
     lo, hi = jnp.log(jnp.asarray(1e-3, dt)), jnp.log(jnp.asarray(2.0, dt))
-
-    def bis(_, st):
-        lo, hi = st
-        mid = 0.5 * (lo + hi)
-        big = model_ratio(mid) > ratio  # model too peaked: sigma larger
-        return jnp.where(big, mid, lo), jnp.where(big, hi, mid)
-
-    lo, hi = jax.lax.fori_loop(0, 60, bis, (lo, hi))
-    sigma = jnp.exp(0.5 * (lo + hi))
-    return SourceEstimate(d, tot, peak, bg, radius, sigma, sigma_plain)
+    sol = optx.root_find(lambda ls, _: model_ratio(ls) - ratio, optx.Bisection(rtol=1e-12, atol=1e-12, flip=True),
+                         0.5 * (lo + hi), options=dict(lower=lo, upper=hi), max_steps=100, throw=False)
+    sigma = jnp.exp(sol.value)
+    return SourceEstimate(d, tot, peak, bg, radius, sigma, sigma_plain, sol.stats["num_steps"])
 
 
 # --------------------------------------------------------------------------- the solver
@@ -324,8 +342,16 @@ def factorize(
     rtol: float | None = None,
     atol: float | None = None,
     chunk: int = 4096,
+    throw: bool = False,
 ) -> FactorizationResult:
     """Recover BRDF and lighting together (R&H sec. 6.3; module docstring).
+
+    Stage 1 minimizes the profiled eq.-25 residual over $\\mu$ by a 9-point
+    grid in $\\log(\\mu - 1)$, two 7-point zooms and a parabola (23
+    evaluations; none with `fresnel=False`), each evaluation running a
+    per-channel `optimistix.GoldenSearch` over $K_s$; `find_source` then gives
+    $\\sigma$ (eq. 26, `optimistix.Bisection`); `refine` runs
+    `optimistix.NelderMead` over $(K_s, \\sigma)$ with $\\mu$ fixed.
 
     **Arguments:**
 
@@ -340,7 +366,10 @@ def factorize(
       lighting modelled as slow SH + the found source (needs `find_sigma`).
     - `search_pixels`: the searches use a random subset of this many pixels
       (None: all); the final solve uses all pixels. `key`: PRNG key.
-    - `max_steps`, `rtol`, `atol`: the refinement simplex.
+    - `max_steps`, `rtol`, `atol`: the refinement simplex (tolerances
+      default to 1e-7).
+    - `chunk`: pixels per chunk of the normal-equation accumulation.
+    - `throw`: raise `solvers.SolveError` unless the status is `converged`.
 
     **Returns:** `FactorizationResult` ($K_d + K_s = 1$ per channel; the
     lighting carries the scale). Float32 observations are solved in float64
@@ -371,7 +400,7 @@ def factorize(
                                     search_pixels=search_pixels, key=key, max_steps=max_steps, rtol=rtol, atol=atol,
                                     chunk=chunk)
         down = obs.values.dtype
-        return jax.tree_util.tree_map(lambda a: a.astype(down) if a.dtype == jnp.float64 else a, res)
+        return finish(jax.tree_util.tree_map(lambda a: a.astype(down) if a.dtype == jnp.float64 else a, res), throw)
     dt = obs.values.dtype
     f64 = dt == jnp.float64
     rcond = 1e-12 if f64 else 1e-6
@@ -407,21 +436,29 @@ def factorize(
         its1 = 9 + 7 + 7
     else:
         mu, its1 = None, 0
-    ks, res1 = _stage1_final(obs, mu, lmax, chunk, rcond)
+    ks, res1, golden_steps = _stage1_final(obs, mu, lmax, chunk, rcond)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
     std_inf = TorranceSparrow(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
+    zero = jnp.asarray(0)
+    stats = {"num_mu_candidates": jnp.asarray(its1), "num_steps_simplex": zero, "num_steps_golden": golden_steps,
+             "num_steps_bisection": zero, "n_obs": res1.stats["n_obs"]}
+
+    def result(brdf, lighting, source, std, status, iterations, rms, rel, stats):
+        res = FactorizationResult(brdf=brdf, lighting=lighting, filtered_sh=filtered, source=source, std_errors=std,
+                                  status=status, iterations=jnp.asarray(iterations), rms=rms, rel_rms=rel, stats=stats)
+        return finish(res, throw)
+
     if not find_sigma:
         brdf = TorranceSparrow(1.0 - ks, ks, mu, jnp.asarray(jnp.nan, dt))
-        return FactorizationResult(brdf, res1.lighting, filtered, None, std_inf, res1.status, jnp.asarray(its1),
-                                   res1.rms, res1.rel_rms)
+        return result(brdf, res1.lighting, None, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     src = find_source.__wrapped__(filtered, region=region)
+    stats["num_steps_bisection"] = src.num_steps
     if not refine:
         brdf = TorranceSparrow(1.0 - ks, ks, mu, src.sigma)
-        return FactorizationResult(brdf, res1.lighting, filtered, src, std_inf, res1.status, jnp.asarray(its1),
-                                   res1.rms, res1.rel_rms)
+        return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond)
-    ks, sigma, lighting, se_ks, se_sigma, ok, its2, rms, rel = out
+    ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
     brdf = TorranceSparrow(1.0 - ks, ks, mu, sigma)
     se_mu = None
     if mu is not None:
@@ -432,10 +469,10 @@ def factorize(
             s2 = float(rms) ** 2 * nobs / max(nobs - (jaxsh.num_coeffs(lmax) + 1) * obs.n_channels - 2 * obs.n_channels - 2, 1)
             se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
     std = TorranceSparrow(se_ks, se_ks, se_mu, se_sigma)
-    status = Status.where(ok, Status.converged, Status.max_steps_reached)
     finite = jnp.all(jnp.isfinite(ks)) & jnp.isfinite(sigma) & jnp.isfinite(rms)
-    status = Status.where(finite, status, Status.nonfinite)
-    return FactorizationResult(brdf, lighting, filtered, src, std, status, its1 + its2, rms, rel)
+    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_nm)
+    stats["num_steps_simplex"] = its2
+    return result(brdf, lighting, src, std, status, its1 + its2, rms, rel, stats)
 
 
 @eqx.filter_jit
@@ -446,7 +483,7 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
 
     def one(ti):
         bl = _blocks(sub, 1.0 + jnp.exp(ti), lmax, chunk, rcond)
-        _, rss = _golden_ks(lambda ks: _schur_rss(bl, 1.0 - ks, ks, ones)[0], sub.n_channels, dt, 40)
+        _, rss, _ = _golden_ks(bl, ones, 1e-9, 1e-9, 100)
         return jnp.sum(rss) / jnp.sum(bl.g.bb)
 
     return jax.lax.map(one, t)
@@ -457,8 +494,8 @@ def _stage1_final(obs, mu, lmax, chunk, rcond):
     dt = obs.values.dtype
     ones = jnp.ones(((lmax + 1) ** 2,), dt)
     bl = _blocks(obs, mu, lmax, chunk, rcond)
-    ks, _ = _golden_ks(lambda k: _schur_rss(bl, 1.0 - k, k, ones)[0], obs.n_channels, dt, 50)
-    return ks, _finish(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond)
+    ks, _, steps = _golden_ks(bl, ones, 1e-11, 1e-11, 100)
+    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps
 
 
 def _fast_column(n, v, mu, sigma, d):
@@ -487,10 +524,8 @@ class _Joint(eqx.Module):
 
 
 def _joint(o: Observations, mu, lmax, chunk, rcond) -> _Joint:
-    from ._lighting import _rows
-
     bl = _blocks(o, mu, lmax, chunk, rcond)
-    d, s = _rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax)
+    d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax)
     return _Joint(bl, d, s, o.weights, o.values, o.normals, o.views)
 
 
@@ -514,9 +549,9 @@ def _joint_rss(jt: _Joint, ks, sigma, mu, d, lmax):
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond):
     jt_sub = _joint_jit(sub, mu, lmax, chunk, rcond)
-    p, ok, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
+    p, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
     jt = jt_sub if sub is obs else _joint_jit(obs, mu, lmax, chunk, rcond)
-    return _refine_final(jt, p, mu, d, lmax, ok, its)
+    return _refine_final(jt, p, mu, d, lmax, status, its)
 
 
 @eqx.filter_jit
@@ -543,17 +578,17 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     ks_c = jnp.clip(ks0, 1e-4, 1 - 1e-4)
     p0 = jnp.concatenate([jnp.log(ks_c / (1 - ks_c)), jnp.log(sigma0)[None]]).astype(pdt)
     sol = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), p0, max_steps=max_steps, throw=False)
-    return sol.value.astype(dt), sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+    return sol.value.astype(dt), status_from_optimistix(sol.result), sol.stats["num_steps"]
 
 
 @eqx.filter_jit
-def _refine_final(jt, p, mu, d, lmax, ok, its):
+def _refine_final(jt, p, mu, d, lmax, status, its):
     c = jt.b.shape[1]
     ks, sigma = _unpack(p, c)
     rss, x1, x2 = _joint_rss(jt, ks, sigma, mu, d, lmax)
     nobs = jt.bl.g.count * c
-    rms = jnp.sqrt(jnp.sum(rss) / nobs)
-    rel = rms / jnp.sqrt(jnp.sum(jt.bl.g.bb) / nobs)
+    data_ss = jnp.sum(jt.bl.g.bb)
+    rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
     slow = jnp.concatenate([x1[:, :9], x2], 1).T  # (n, C), unfiltered slow lighting
     lighting = Lighting(slow, d[None, :], x1[:, 9][None, :])
     # standard errors of (ks, sigma): Hessian of the profiled RSS (Gauss-Newton: J'J = H/2)
@@ -566,9 +601,8 @@ def _refine_final(jt, p, mu, d, lmax, ok, its):
     n_par = x1.size + x2.size + theta.size
     s2 = jnp.sum(rss) / jnp.maximum(nobs - n_par, 1.0)
     h2 = 0.5 * (hess + hess.T)
-    # small dense inverse by the unrolled elimination (no LAPACK): columns of the identity
-    eye = jnp.eye(theta.size, dtype=h2.dtype)
-    hinv = jax.vmap(lambda e: _small_spd_solve(0.5 * h2, e))(eye)
+    # small dense inverse by the unrolled elimination (no LAPACK)
+    hinv = inverse_spd_unrolled(0.5 * h2)
     var = jnp.diag(hinv) * s2
     se = jnp.where((var > 0) & jnp.isfinite(var), jnp.sqrt(jnp.abs(var)), jnp.inf)
-    return ks, sigma, lighting, se[:c], se[c], ok, its, rms, rel
+    return ks, sigma, lighting, se[:c], se[c], status, its, rms, rel, data_ss

@@ -14,7 +14,11 @@ with warnings.catch_warnings():
 
 
 def minimize_nonnegative(fun, x0, maxiter: int = 500, tol: float = 1e-8):
-    """Minimize a smooth `fun(x)` subject to `x >= 0` (jaxopt.LBFGSB). Returns `(x, num_iter, error)`."""
+    """Minimize a smooth `fun(x)` subject to `x >= 0` (jaxopt.LBFGSB). Returns `(x, num_iter, error)`.
+
+    `error` is L-BFGS-B's final projected-gradient norm: the run converged when `error <= tol`; callers
+    turn it into a `Status` with `solvers._results.status_from_lbfgsb` (never drop it).
+    """
     import jax.numpy as jnp
 
     solver = jaxopt.LBFGSB(fun=fun, maxiter=maxiter, tol=tol)

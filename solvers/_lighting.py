@@ -38,14 +38,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+import lineax as lx
+
 import jaxsh
 
+from ._data import Lighting, Observations, TorranceSparrow
+from ._normal_equations import Gram, accumulate_gram, channel_system, eig_solve
+from ._results import (Solution, Status, finish, rms_pair, signal_status, status_from_lbfgsb, status_from_optimistix, worst,
+                       worst_batched)
 from ._threads import blas_single_thread
-from ._data import Lighting, Observations, Status, TorranceSparrow
 
 
-class LightingResult(eqx.Module):
-    """Result of `inverse_lighting`.
+class LightingResult(Solution):
+    """Result of `inverse_lighting` (a `solvers.Solution`; `estimate` is `coeffs`).
 
     **Fields:**
 
@@ -57,7 +62,11 @@ class LightingResult(eqx.Module):
       degree $\\le l$ is determined by the data.
     - `band_snr`: `(lmax+1, C)` RMS over $m$ of $|L_{lm}|/\\mathrm{se}_{lm}$: where it
       drops below ~1, noise dominates (the $l^*$ of R&H sec. 6.2 in practice).
-    - `status`, `rms`, `rel_rms`.
+    - `status`: `converged`; `ill_conditioned` when some coefficient is
+      undetermined (see `determined`, `singular_values`); `nonfinite`;
+      `no_signal` for all-zero data.
+    - `iterations`: 0 (a direct solve); `rms`, `rel_rms` (never NaN).
+    - `stats`: `rank` `(C,)` (eigenvalues kept), `n_obs` (weighted samples × channels).
     """
 
     coeffs: Float[Array, "n_coeffs C"]
@@ -69,6 +78,12 @@ class LightingResult(eqx.Module):
     status: Status
     rms: Float[Array, ""]
     rel_rms: Float[Array, ""]
+    iterations: Int[Array, ""]
+    stats: dict
+
+    @property
+    def estimate(self) -> Float[Array, "n_coeffs C"]:
+        return self.coeffs
 
     @property
     def lmax(self) -> int:
@@ -77,110 +92,6 @@ class LightingResult(eqx.Module):
     @property
     def lighting(self) -> Lighting:
         return Lighting(self.coeffs)
-
-
-# --------------------------------------------------------------------------- normal equations
-
-
-class _Gram(eqx.Module):
-    """Sums over pixels of the two row blocks d (diffuse, 9 columns) and s (specular, n columns)."""
-
-    dd: Array  # (9, 9)
-    ds: Array  # (9, n)
-    ss: Array  # (n, n)
-    db: Array  # (9, C)
-    sb: Array  # (n, C)
-    bb: Array  # (C,)
-    count: Array  # ()
-
-
-def _rows(n, v, transfer, rvis, mu, filt, lmax: int):
-    """Diffuse rows (chunk, 9) and specular rows (chunk, n_coeffs) of eq. 25."""
-    dt = n.dtype
-    l2 = min(lmax, 2)
-    if transfer is not None:
-        d = transfer[:, : (l2 + 1) ** 2]
-    else:
-        a = jaxsh.lambertian_spectrum(l2, dt)[jaxsh.sh_degrees(l2)]
-        d = jaxsh.real_sh(n, l2) * a[None, :]
-    d = jnp.pad(d, ((0, 0), (0, 9 - d.shape[1])))
-    cos_o = jnp.sum(n * v, -1)
-    vis = cos_o > 0
-    cos_o = jnp.where(vis, cos_o, 1.0)
-    f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
-    r = jaxsh.reflect(v, n)
-    y = jaxsh.real_sh(r, lmax)
-    if filt is not None:
-        y = y * filt[None, :]
-    scale = f if rvis is None else f * rvis
-    s = y * jnp.where(vis, scale, 0.0)[:, None]
-    d = jnp.where(vis[:, None], d, 0.0)
-    return d, s
-
-
-def _gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int) -> _Gram:
-    """Accumulate the normal-equation blocks over pixel chunks (lax.scan; zero-weight padding)."""
-    npx = n.shape[0]
-    pad = (-npx) % chunk
-    up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
-    n_p = jnp.concatenate([n, up]).reshape(-1, chunk, 3)
-    v_p = jnp.concatenate([v, up]).reshape(-1, chunk, 3)
-    b_p = jnp.pad(b, ((0, pad), (0, 0))).reshape(-1, chunk, b.shape[1])
-    w_p = jnp.pad(w, (0, pad)).reshape(-1, chunk)
-    t_p = None if transfer is None else jnp.pad(transfer, ((0, pad), (0, 0))).reshape(-1, chunk, transfer.shape[1])
-    r_p = None if rvis is None else jnp.pad(rvis, (0, pad)).reshape(-1, chunk)
-    nc = (lmax + 1) ** 2
-    c = b.shape[1]
-    dt = n.dtype
-    init = _Gram(
-        jnp.zeros((9, 9), dt), jnp.zeros((9, nc), dt), jnp.zeros((nc, nc), dt), jnp.zeros((9, c), dt),
-        jnp.zeros((nc, c), dt), jnp.zeros((c,), dt), jnp.zeros((), dt),
-    )
-
-    def step(acc, xs):
-        nn, vv, bb, ww, tt, rr = xs
-        d, s = _rows(nn, vv, tt, rr, mu, filt, lmax)
-        wd, ws = d * ww[:, None], s * ww[:, None]
-        return _Gram(
-            acc.dd + wd.T @ d, acc.ds + wd.T @ s, acc.ss + ws.T @ s, acc.db + wd.T @ bb, acc.sb + ws.T @ bb,
-            acc.bb + jnp.sum(ww[:, None] * bb * bb, 0), acc.count + jnp.sum((ww > 0).astype(dt)),
-        ), None
-
-    out, _ = jax.lax.scan(step, init, (n_p, v_p, b_p, w_p, t_p, r_p))
-    return out
-
-
-def _channel_system(g: _Gram, kd, ks):
-    """Per-channel normal matrix and right-hand side for A_c = kd_c d + ks_c s: (C, n, n), (C, n)."""
-    nc = g.ss.shape[0]
-    k = min(9, nc)
-    dd = jnp.zeros((nc, nc), g.ss.dtype).at[:k, :k].set(g.dd[:k, :k])
-    ds = jnp.zeros((nc, nc), g.ss.dtype).at[:k, :].set(g.ds[:k, :])
-    db = jnp.zeros((nc, g.db.shape[1]), g.ss.dtype).at[:k].set(g.db[:k])
-    ata = (kd**2)[:, None, None] * dd[None] + (kd * ks)[:, None, None] * (ds + ds.T)[None] + (ks**2)[:, None, None] * g.ss[None]
-    atb = (kd[None, :] * db + ks[None, :] * g.sb).T  # (C, n)
-    return ata, atb
-
-
-def _solve_channels(ata, atb, bb, count, rcond, ridge):
-    """Eigen-solve each channel; returns x (C, n), se (C, n), determined (C, n), sv (C, n), rss (C,), bad."""
-    evals, evecs = jnp.linalg.eigh(ata)  # ascending
-    top = evals[:, -1:]
-    keep = evals > rcond * top
-    inv = jnp.where(keep, 1.0 / (jnp.where(keep, evals, 1.0) + ridge), 0.0)
-    proj = jnp.einsum("cji,cj->ci", evecs, atb)
-    x = jnp.einsum("cij,cj->ci", evecs, inv * proj)
-    # rss = b'b - 2 x'A'b + x'A'A x (exact for any x)
-    rss = bb - 2 * jnp.sum(x * atb, -1) + jnp.einsum("ci,cij,cj->c", x, ata, x)
-    rss = jnp.maximum(rss, 0.0)
-    n_free = jnp.sum(keep, -1).astype(rss.dtype)
-    s2 = rss / jnp.maximum(count - n_free, 1.0)
-    var = jnp.einsum("cij,cj->ci", evecs**2, inv**2 * jnp.where(keep, evals, 0.0))
-    null_weight = jnp.einsum("cij,cj->ci", evecs**2, (~keep).astype(evecs.dtype))
-    determined = null_weight < 1e-6
-    se = jnp.where(determined, jnp.sqrt(s2[:, None] * var), jnp.inf)
-    sv = jnp.sqrt(jnp.clip(evals[:, ::-1], 0.0))
-    return x, se, determined, sv, rss
 
 
 def _check_brdf(brdf, name="brdf"):
@@ -203,6 +114,7 @@ def inverse_lighting(
     ridge: float = 0.0,
     rcond: float | None = None,
     chunk: int = 4096,
+    throw: bool = False,
 ) -> LightingResult:
     """Recover SH lighting coefficients $L_{lm}$, $l \\le$ `lmax`, for a known BRDF (R&H eq. 25).
 
@@ -218,6 +130,8 @@ def inverse_lighting(
     - `ridge`: Tikhonov term added to the normal equations (0: none).
     - `rcond`: eigenvalues below `rcond × largest` are treated as zero
       (default 1e-12 in float64, 1e-6 in float32).
+    - `chunk`: pixels per chunk of the normal-equation accumulation.
+    - `throw`: raise `solvers.SolveError` unless the status is `converged`.
 
     **Returns:** `LightingResult` (module docstring).
     """
@@ -233,8 +147,9 @@ def inverse_lighting(
     ks = jnp.broadcast_to(jnp.asarray(brdf.ks, dt), (c,))
     if rcond is None:
         rcond = 1e-12 if dt == jnp.float64 else 1e-6
-    return _inverse_lighting(obs, kd, ks, None if brdf.mu is None else jnp.asarray(brdf.mu, dt),
-                             jnp.asarray(brdf.sigma, dt), lmax, deconvolve, float(ridge), float(rcond), int(chunk))
+    res = _inverse_lighting(obs, kd, ks, None if brdf.mu is None else jnp.asarray(brdf.mu, dt),
+                            jnp.asarray(brdf.sigma, dt), lmax, deconvolve, float(ridge), float(rcond), int(chunk))
+    return finish(res, throw)
 
 
 @eqx.filter_jit
@@ -242,36 +157,40 @@ def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, ch
     filt = None
     if deconvolve:
         filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
-    g = _gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility, mu, filt,
-              lmax, chunk)
-    return _finish(g, kd, ks, lmax, ridge, rcond)
+    g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility, mu,
+                        filt, lmax, chunk)
+    return lighting_from_gram(g, kd, ks, lmax, ridge, rcond)
 
 
-def _finish(g: _Gram, kd, ks, lmax, ridge, rcond) -> LightingResult:
-    ata, atb = _channel_system(g, kd, ks)
-    x, se, det, sv, rss = _solve_channels(ata, atb, g.bb, g.count, rcond, ridge)
-    degrees = jnp.asarray(jaxsh.sh_degrees(lmax))
+def lighting_from_gram(g: Gram, kd, ks, lmax, ridge, rcond) -> LightingResult:
+    """The eq.-25 solve from accumulated Gram blocks (`inverse_lighting`; stage 1 of `factorize`)."""
+    ata, atb = channel_system(g, kd, ks)
+    x, se, det, sv, rss, rank = eig_solve(ata, atb, g.bb, g.count, rcond, ridge)
     # supported l*: largest l with all coefficients of degree <= l determined.
     band_ok = jnp.stack([jnp.all(det[:, l * l : (l + 1) ** 2], -1) for l in range(lmax + 1)], -1)  # (C, L+1)
     prefix = jnp.cumprod(band_ok.astype(jnp.int32), -1)
     supported = jnp.sum(prefix, -1) - 1
     snr2 = jnp.where(det, (x / jnp.where(det, se, 1.0)) ** 2, 0.0)
     band_snr = jnp.stack([jnp.sqrt(jnp.mean(snr2[:, l * l : (l + 1) ** 2], -1)) for l in range(lmax + 1)], 0)
-    del degrees
     nobs = g.count * kd.shape[0]
-    rms = jnp.sqrt(jnp.sum(rss) / nobs)
-    rel = rms / jnp.sqrt(jnp.sum(g.bb) / nobs)
+    data_ss = jnp.sum(g.bb)
+    rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
     finite = jnp.all(jnp.isfinite(x)) & jnp.isfinite(rms)
-    status = Status.where(jnp.all(det), Status.converged, Status.ill_conditioned)
-    status = Status.where(finite, status, Status.nonfinite)
-    return LightingResult(x.T, se.T, det.T, sv, supported, band_snr, status, rms, rel)
+    status = worst(
+        Status.where(finite, Status.converged, Status.nonfinite),
+        signal_status(data_ss),
+        Status.where(jnp.all(det), Status.converged, Status.ill_conditioned),
+    )
+    return LightingResult(coeffs=x.T, std_errors=se.T, determined=det.T, singular_values=sv, supported_lmax=supported,
+                          band_snr=band_snr, status=status, rms=rms, rel_rms=rel, iterations=jnp.asarray(0),
+                          stats={"rank": rank, "n_obs": nobs})
 
 
 # --------------------------------------------------------------------------- the dual method (fig. 8)
 
 
-class DualLightingResult(eqx.Module):
-    """Result of `inverse_lighting_dual`.
+class DualLightingResult(Solution):
+    """Result of `inverse_lighting_dual` (a `solvers.Solution`; `estimate` is `image`).
 
     - `image`: `(H, W, C)` lat-long lighting in angular space (the filtered
       lighting seen in the mirror directions; texels no mirror direction
@@ -281,7 +200,14 @@ class DualLightingResult(eqx.Module):
     - `covered`: `(H, W)` bool, texels reached by a mirror direction.
     - `consistency`: `(C,)` $|L^1 - L^2| / |L^1|$ of the returned image
       (0 up to round-off without `nonneg`; small with it).
-    - `status`, `rms`, `rel_rms`, `iterations` (of the non-negative refinement).
+    - `status`: the worst of the consistency solve's (lineax LU, via
+      `status_from_optimistix`: `singular` for a singular system), the
+      L-BFGS-B refinement's (`status_from_lbfgsb`: `max_steps_reached` when
+      its projected-gradient error is still above its tolerance after
+      `maxiter` iterations), `nonfinite` and `no_signal`.
+    - `rms`, `rel_rms` (never NaN), `iterations` (of the non-negative refinement; 0 without it).
+    - `stats`: `lbfgsb_error` (final projected-gradient norm; 0 without
+      `nonneg`), `lbfgsb_tol`, `n_obs`.
     """
 
     image: Float[Array, "H W C"]
@@ -292,6 +218,11 @@ class DualLightingResult(eqx.Module):
     rms: Float[Array, ""]
     rel_rms: Float[Array, ""]
     iterations: Int[Array, ""]
+    stats: dict
+
+    @property
+    def estimate(self) -> Float[Array, "H W C"]:
+        return self.image
 
 
 @blas_single_thread
@@ -302,6 +233,8 @@ def inverse_lighting_dual(
     *,
     nonneg: bool = True,
     maxiter: int = 300,
+    tol: float = 1e-8,
+    throw: bool = False,
 ) -> DualLightingResult:
     """The dual angular / frequency-space inverse lighting of R&H sec. 6.2 (fig. 8).
 
@@ -311,10 +244,12 @@ def inverse_lighting_dual(
     it (eq. 22 with $B_{s,fast} = 0$). Phase 2 projects that image to 9
     coefficients $L^2$. Both are affine in $L^1$, so the consistency
     condition $L^1 = L^2$ is 9 linear equations per channel, solved
-    directly. With `nonneg=True` the image is then refined by jaxopt's
-    L-BFGS-B under $L \\ge 0$, minimizing the image residual of the same
-    model with the diffuse term driven by the image's own $l \\le 2$
-    projection (consistency by construction).
+    directly (`lineax.LU`). With `nonneg=True` the image is then refined by
+    jaxopt's L-BFGS-B under $L \\ge 0$ (at most `maxiter` iterations, to a
+    projected-gradient norm `tol`), minimizing the image residual of the
+    same model with the diffuse term driven by the image's own $l \\le 2$
+    projection (consistency by construction). `throw`: raise
+    `solvers.SolveError` unless the status is `converged`.
 
     Convex objects only (the paper: with shadows $B_d$ no longer depends on
     9 coefficients); `obs.transfer` must be None. `brdf`: homogeneous, with
@@ -335,15 +270,9 @@ def inverse_lighting_dual(
     if not bool(jnp.all(ks > 0)):
         raise ValueError("inverse_lighting_dual needs `brdf.ks` > 0 in every channel (the mirror term carries the image)")
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
-    x, l9, cov, iters = _dual(obs, kd, ks, mu, h, nonneg, int(maxiter))
-    res = _dual_finish(obs, kd, ks, mu, x, l9, cov, iters, h)
-    if nonneg and int(iters) >= int(maxiter) and _status_ok(res.status):
-        res = eqx.tree_at(lambda r: r.status, res, Status.max_steps_reached)
-    return res
-
-
-def _status_ok(status) -> bool:
-    return bool(status == Status.converged)
+    img, l9, cov, iters, error, lin = _dual(obs, kd, ks, mu, h, nonneg, int(maxiter), float(tol))
+    res = _dual_finish(obs, kd, ks, mu, img, l9, cov, iters, error, lin, h, nonneg, int(maxiter), float(tol))
+    return finish(res, throw)
 
 
 def _dual_pieces(obs, kd, ks, mu, h):
@@ -370,7 +299,7 @@ def _dual_pieces(obs, kd, ks, mu, h):
 
 
 @eqx.filter_jit
-def _dual(obs, kd, ks, mu, h, nonneg, maxiter):
+def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol):
     t_count = h * 2 * h
     f, tex, d, wv, y9, omega, b = _dual_pieces(obs, kd, ks, mu, h)
     c = b.shape[1]
@@ -390,9 +319,16 @@ def _dual(obs, kd, ks, mu, h, nonneg, maxiter):
     pa = p @ a  # (9, C)
     pm = jnp.einsum("it,tcj->cij", p, m)  # (C, 9, 9)
     eye = jnp.eye(9, dtype=b.dtype)
-    l1 = jnp.linalg.solve(eye[None] + pm, pa.T[:, :, None])[:, :, 0].T  # (9, C)
+
+    def consistency_solve(mat, rhs):  # (I + P M_c) L1_c = P a_c, one 9x9 LU solve per channel (outside loops)
+        sol = lx.linear_solve(lx.MatrixLinearOperator(mat), rhs, lx.LU(), throw=False)
+        return sol.value, status_from_optimistix(sol.result)
+
+    l1, lin = jax.vmap(consistency_solve)(eye[None] + pm, pa.T)
+    l1 = l1.T  # (9, C)
     img = a - jnp.einsum("tcj,jc->tc", m, l1)  # (T, C)
     iters = jnp.asarray(0)
+    error = jnp.zeros((), b.dtype)
     if nonneg:
         from ._jaxopt import minimize_nonnegative
 
@@ -406,24 +342,29 @@ def _dual(obs, kd, ks, mu, h, nonneg, maxiter):
             tie = jnp.where(covered[:, None], 0.0, x - img)
             return jnp.sum(r * r) / jnp.sum(wv) + 1e-6 * jnp.sum(tie * tie) / t_count
 
-        x, iters, _ = minimize_nonnegative(loss, jnp.maximum(img, 0.0), maxiter=maxiter)
+        x, iters, error = minimize_nonnegative(loss, jnp.maximum(img, 0.0), maxiter=maxiter, tol=tol)
         img = x
         l1 = p @ img
-    return img, l1, covered, iters
+    return img, l1, covered, iters, error, lin
 
 
-def _dual_finish(obs, kd, ks, mu, img, l1, covered, iters, h):
+def _dual_finish(obs, kd, ks, mu, img, l1, covered, iters, error, lin, h, nonneg, maxiter, tol):
     f, tex, d, wv, y9, omega, b = _dual_pieces(obs, kd, ks, mu, h)
     g = ks[None, :] * f[:, None]
     pred = kd[None, :] * (d @ l1) + g * img[tex]
     rss = jnp.sum(wv[:, None] * (pred - b) ** 2)
     nobs = jnp.sum((wv > 0).astype(b.dtype)) * b.shape[1]
-    rms = jnp.sqrt(rss / nobs)
-    rel = rms / jnp.sqrt(jnp.sum(wv[:, None] * b * b) / nobs)
+    data_ss = jnp.sum(wv[:, None] * b * b)
+    rms, rel = rms_pair(rss, data_ss, nobs)
     p = (omega[:, None] * y9).T
     l2 = p @ img
-    consistency = jnp.linalg.norm(l2 - l1, axis=0) / jnp.linalg.norm(l1, axis=0)
+    n1 = jnp.linalg.norm(l1, axis=0)
+    n21 = jnp.linalg.norm(l2 - l1, axis=0)
+    consistency = jnp.where(n1 > 0, n21 / jnp.where(n1 > 0, n1, 1.0), jnp.where(n21 > 0, jnp.inf, 0.0))
     finite = jnp.all(jnp.isfinite(img)) & jnp.isfinite(rms)
-    status = Status.where(finite, Status.converged, Status.nonfinite)
-    return DualLightingResult(img.reshape(h, 2 * h, -1), l1, covered.reshape(h, 2 * h), consistency, status, rms, rel,
-                              jnp.asarray(iters))
+    st_lin = worst_batched(lin)
+    st_lbfgsb = status_from_lbfgsb(iters, error, maxiter, tol) if nonneg else Status.converged
+    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_lin, st_lbfgsb)
+    return DualLightingResult(image=img.reshape(h, 2 * h, -1), coeffs9=l1, covered=covered.reshape(h, 2 * h),
+                              consistency=consistency, status=status, rms=rms, rel_rms=rel, iterations=jnp.asarray(iters),
+                              stats={"lbfgsb_error": error, "lbfgsb_tol": jnp.asarray(tol, b.dtype), "n_obs": nobs})

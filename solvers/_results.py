@@ -18,13 +18,13 @@ with the default `throw=False` the caller checks `result.status`.
 This mirrors `optimistix.RESULTS` / `throw=` (optimistix `_solution.py`).
 """
 
-from __future__ import annotations
 
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
@@ -99,14 +99,21 @@ class Solution(eqx.Module):
 
 
 def status_from_optimistix(result) -> Status:
-    """Map an `optimistix.RESULTS` (which extends `lineax.RESULTS`) item to `Status`, faithfully.
+    """Map an `optimistix.RESULTS` item (or a `lineax.RESULTS` one, promoted) to `Status`, faithfully.
 
-    successful → converged; nonlinear_max_steps_reached and lineax's
-    max_steps_reached → max_steps_reached; nonlinear_divergence → diverged;
-    singular → singular; breakdown, stagnation → breakdown; anything else
-    (e.g. conlim) → ill_conditioned.
+    | optimistix / lineax item | `Status` |
+    |---|---|
+    | successful | converged |
+    | nonlinear_max_steps_reached, max_steps_reached | max_steps_reached |
+    | nonlinear_divergence | diverged |
+    | singular | singular |
+    | breakdown, stagnation | breakdown |
+    | nonfinite, nonfinite_input | nonfinite |
+    | conlim (condition-number limit) and any other | ill_conditioned |
     """
     R = optx.RESULTS
+    if getattr(result, "_enumeration", None) is lx.RESULTS:
+        result = R.promote(result)
     out = Status.ill_conditioned
     pairs = [
         ("successful", Status.converged),
@@ -116,6 +123,8 @@ def status_from_optimistix(result) -> Status:
         ("singular", Status.singular),
         ("breakdown", Status.breakdown),
         ("stagnation", Status.breakdown),
+        ("nonfinite", Status.nonfinite),
+        ("nonfinite_input", Status.nonfinite),
     ]
     for name, st in pairs:
         item = getattr(R, name, None)
@@ -144,6 +153,13 @@ def worst(*statuses: Status) -> Status:
     return out
 
 
+def worst_batched(status: Status) -> Status:
+    """Reduce a batched `Status` (e.g. from a vmapped solve, one per channel) to its first non-`converged` item."""
+    bad = jnp.ravel(status != Status.converged)
+    k = jnp.argmax(bad)
+    return jax.tree_util.tree_map(lambda v: jnp.ravel(v)[k], status)
+
+
 def rms_pair(rss, data_ss, count) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """`(rms, rel_rms)` from a residual sum of squares, the data's sum of squares and the sample count.
 
@@ -158,6 +174,11 @@ def rms_pair(rss, data_ss, count) -> tuple[Float[Array, ""], Float[Array, ""]]:
     drms = jnp.where(count > 0, jnp.sqrt(jnp.maximum(data_ss, 0) / safe), 0)
     rel = jnp.where(drms > 0, rms / jnp.where(drms > 0, drms, 1), jnp.where(rms > 0, jnp.inf, 0))
     return rms, rel.astype(rms.dtype)
+
+
+def signal_status(data_ss) -> Status:
+    """`no_signal` when the weighted sum of squares of the data is 0 (all-zero images or weights), else `converged`."""
+    return Status.where(jnp.asarray(data_ss) > 0, Status.converged, Status.no_signal)
 
 
 def finish(result: Solution, throw: bool) -> Solution:

@@ -16,7 +16,7 @@ each with a `render` method that predicts radiance under new lighting and
 views. The image-sample conventions are those of `jaxsh`: directions point
 away from the surface (`light` = $\\omega_i$, `view` = $\\omega_o$), radiance
 $I = \\rho\\,E\\cos\\theta_i$ for a directional source of irradiance $E$ at
-normal incidence (DESIGN.md, "capture manifest").
+normal incidence (docs/conventions.md, "Lighting").
 
 ??? cite "References"
     Zickler, T., Ramamoorthi, R., Enrique, S., Belhumeur, P. N. (2006).
@@ -45,9 +45,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
-from jaxsh._rbf import _evaluate, _safe_sqrt, _sq_dist, auto_chunk
 
-STATUS_NAMES = ("success", "tol_not_reached", "singular")
+from ._results import Solution, Status, finish, rms_pair, worst
 
 
 # --------------------------------------------------------------------------- input checks
@@ -153,60 +152,7 @@ def _affine_rank(p):
     return int(np.sum(sv > tol))
 
 
-# --------------------------------------------------------------------------- the saddle-point solve (eq. 10)
-
-
-def _poly_basis(x, shift, pscale):
-    """[1, (x - shift)/pscale] for x (B, d) -> (B, d + 1)."""
-    xh = (x - shift[None, :]) / pscale[None, :]
-    return jnp.concatenate([jnp.ones_like(xh[:, :1]), xh], axis=1)
-
-
-def _solve_saddle(centers, rhs, active, scale, smoothing, shift, pscale):
-    """Solve eq. 10 with Ψ − ρI for the active centres; inactive rows are decoupled (weight 0).
-
-    LU with partial pivoting on the full symmetric-indefinite matrix (one
-    factorization, all channels as right-hand sides). Returns kernel weights
-    (K, C) and polynomial coefficients (d+1, C) in the *raw* coordinates.
-    """
-    k, d = centers.shape
-    dt = centers.dtype
-    cs = centers * scale[None, :]
-    psi = _safe_sqrt(_sq_dist(cs, cs))
-    eye = jnp.eye(k, dtype=dt)
-    am = active.astype(dt)
-    outer = am[:, None] * am[None, :]
-    psi = psi * outer - smoothing * eye * am[None, :] + eye * (1.0 - am)[None, :]
-    p = _poly_basis(centers, shift, pscale) * am[:, None]
-    top = jnp.concatenate([psi, p], axis=1)
-    bottom = jnp.concatenate([p.T, jnp.zeros((d + 1, d + 1), dtype=dt)], axis=1)
-    a = jnp.concatenate([top, bottom], axis=0)
-    b = jnp.concatenate([rhs * am[:, None], jnp.zeros((d + 1, rhs.shape[1]), dtype=dt)], axis=0)
-    sol = jnp.linalg.solve(a, b)
-    lam = sol[:k]
-    ch = sol[k:]
-    # back to raw coordinates: c0 + Σ c_k (x_k - m_k)/s_k
-    lin = ch[1:] / pscale[:, None]
-    c0 = ch[0] - jnp.sum(lin * shift[:, None], axis=0)
-    poly = jnp.concatenate([c0[None, :], lin], axis=0)
-    return lam, poly
-
-
-def _poly_normalization(points):
-    lo = jnp.min(points, axis=0)
-    hi = jnp.max(points, axis=0)
-    shift = 0.5 * (lo + hi)
-    half = 0.5 * (hi - lo)
-    return shift, jnp.where(half > 0.0, half, jnp.ones_like(half))
-
-
-@eqx.filter_jit
-def _interpolate(points, values, scale, smoothing):
-    shift, pscale = _poly_normalization(points)
-    active = jnp.ones((points.shape[0],), dtype=bool)
-    lam, poly = _solve_saddle(points, values, active, scale, smoothing, shift, pscale)
-    ok = jnp.all(jnp.isfinite(lam)) & jnp.all(jnp.isfinite(poly))
-    return lam, poly, ok
+# --------------------------------------------------------------------------- greedy centre selection (sec. 6)
 
 
 class _GreedyState(eqx.Module):
@@ -219,13 +165,14 @@ class _GreedyState(eqx.Module):
     round: Int[Array, ""]
     hist_count: Int[Array, " R"]
     hist_rel: Float[Array, " R"]
+    rss: Float[Array, ""]
 
 
 @eqx.filter_jit
 def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, tol, n_centers: int, n_add: int, n_rounds: int, chunk: int):
     n, d = points.shape
     dt = points.dtype
-    shift, pscale = _poly_normalization(points)
+    bounds = (jnp.min(points, axis=0), jnp.max(points, axis=0))  # the polynomial box: all samples, every round
     wv = values * weights[:, None]
     denom = jnp.sqrt(jnp.mean(jnp.sum(wv * wv, axis=1)))
     denom = jnp.where(denom > 0.0, denom, 1.0)
@@ -234,8 +181,8 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
         active = jnp.arange(n_centers) < count
         sel = idx[:n_centers]
         c = points[sel]
-        lam, poly = _solve_saddle(c, values[sel], active, scale, smoothing, shift, pscale)
-        pred = _evaluate(c, lam, poly, scale, points, chunk)
+        lam, poly = jaxsh.rbf_solve(c, values[sel], scale, smoothing, active=active, bounds=bounds)
+        pred = jaxsh.rbf_evaluate(c, lam, poly, points, scale, chunk=chunk)
         res = (values - pred) * weights[:, None]
         e2 = jnp.sum(res * res, axis=1)
         rel = jnp.sqrt(jnp.mean(e2)) / denom
@@ -244,7 +191,7 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
     lam, poly, e2, rel = fit_eval(idx0, count0)
     hist_count = jnp.zeros((n_rounds,), dtype=count0.dtype).at[0].set(count0)
     hist_rel = jnp.full((n_rounds,), jnp.nan, dtype=dt).at[0].set(rel)
-    state = _GreedyState(idx0, count0, is_center, lam, poly, rel, jnp.asarray(0), hist_count, hist_rel)
+    state = _GreedyState(idx0, count0, is_center, lam, poly, rel, jnp.asarray(0), hist_count, hist_rel, jnp.sum(e2))
 
     def cond(carry):
         s, _ = carry
@@ -260,7 +207,8 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
         lam, poly, e2, rel = fit_eval(idx, count)
         r = s.round + 1
         s = _GreedyState(
-            idx, count, is_center, lam, poly, rel, r, s.hist_count.at[r].set(count), s.hist_rel.at[r].set(rel)
+            idx, count, is_center, lam, poly, rel, r, s.hist_count.at[r].set(count), s.hist_rel.at[r].set(rel),
+            jnp.sum(e2),
         )
         return s, e2
 
@@ -271,40 +219,59 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
 # --------------------------------------------------------------------------- result
 
 
-class SharingFit(eqx.Module):
-    """A fitted RBF (S)BRDF with its fitting record; callable like its model.
+class SharingFit(Solution):
+    """Result of `fit_sharing`: a fitted RBF (S)BRDF with its fitting record; callable like its model.
 
     **Fields:**
 
-    - `model`: the `jaxsh.RBFModel` (centres trimmed to those selected).
+    - `model`: the `jaxsh.RBFModel` (centres trimmed to those selected);
+      also `estimate`.
     - `center_index`: `(K,)` indices into the fitted `points` of the centres,
       in the order they were selected.
     - `history_centers`, `history_rms`: `(R,)` centre count and relative
       weighted RMS residual $\\sqrt{\\sum\\varepsilon_i^2/\\sum(w_i f_i)^2}$ over all
       samples after each greedy round (one entry for interpolation).
-    - `status_code`: 0 `"success"`, 1 `"tol_not_reached"` (the centre budget
-      ran out before `tol`), 2 `"singular"` (non-finite solution); `status`
-      gives the name.
+    - `status`: `Status.converged`; `Status.tolerance_not_reached` (the
+      centre budget ran out before `tol`); `Status.singular` (the solve of
+      eq. 10 gave a non-finite solution); `Status.nonfinite` (finite
+      solution, non-finite residual).
+    - `iterations`: greedy rounds after the initial fit (0 for interpolation).
+    - `rms`: weighted RMS residual $\\sqrt{\\sum_{i,c}\\varepsilon_{ic}^2 / (N C)}$ over
+      all `N` samples and `C` channels; `rel_rms`: `rms` over the weighted
+      RMS of the data, $\\sqrt{\\sum\\varepsilon^2/\\sum(w f)^2}$ (the last
+      `history_rms`). 0 for an interpolant (`smoothing = 0`, every sample a
+      centre: exact at the samples).
+    - `stats`: `n_centers` (K), `rss` ($\\sum\\varepsilon^2$), `data_ss`
+      ($\\sum (w f)^2$), `count` ($N C$) — so fits can be combined with
+      `rms_pair`.
 
-    `fit(points)` evaluates `fit.model(points)`.
+    `fit(points)` evaluates `fit.model(points)`. `status_code` (0, 1, 2 for
+    converged, tolerance not reached, singular/non-finite) is kept,
+    deprecated, for old code: use `status`.
     """
 
     model: jaxsh.RBFModel
     center_index: Int[Array, " K"]
     history_centers: Int[Array, " R"]
     history_rms: Float[Array, " R"]
-    status_code: Int[Array, ""]
+    status: Status
+    iterations: Int[Array, ""]
+    rms: Float[Array, ""]
+    rel_rms: Float[Array, ""]
+    stats: dict
 
     def __call__(self, points):
         return self.model(points)
 
     @property
-    def status(self) -> str:
-        return STATUS_NAMES[int(self.status_code)]
+    def estimate(self) -> jaxsh.RBFModel:
+        """The fitted `jaxsh.RBFModel`."""
+        return self.model
 
     @property
-    def rms(self):
-        return self.history_rms[-1]
+    def status_code(self) -> Int[Array, ""]:
+        """Deprecated integer status (0 converged, 1 tolerance not reached, 2 singular or non-finite): use `status`."""
+        return jnp.where(self.status == Status.converged, 0, jnp.where(self.status == Status.tolerance_not_reached, 1, 2))
 
 
 def fit_sharing(
@@ -320,6 +287,7 @@ def fit_sharing(
     n_init: int | None = None,
     n_add: int | None = None,
     chunk: int | None = None,
+    throw: bool = False,
 ) -> SharingFit:
     """Fit the linear-kernel, degree-1 RBF of Zickler 2006 eqs. 9–13 to scattered samples.
 
@@ -330,7 +298,7 @@ def fit_sharing(
       \\Psi_{ij} = \\|M(\\vec q_i - \\vec q_j)\\|,\\; M = \\mathrm{diag}(\\text{scale}),$$
 
     by **LU with partial pivoting of the full $(K + d + 1)^2$ matrix**
-    (`jnp.linalg.solve`): the linear kernel is only conditionally positive
+    (`jnp.linalg.solve`, via `jaxsh.rbf_fit` / `jaxsh.rbf_solve`): the linear kernel is only conditionally positive
     definite ($\\Psi$ has one positive and $K - 1$ negative eigenvalues on
     generic data), so Cholesky does not apply; LU on the whole indefinite
     system is exact in exact arithmetic and was faster and more accurate in
@@ -356,7 +324,7 @@ def fit_sharing(
     the whole loop is one `jax.lax.while_loop` compiled once. Each round
     refactors the padded matrix ($\\frac23 K^3$ flops) rather than updating
     an inverse: an incremental inverse update was measured to diverge
-    (PEERS.md), and at $N \\gg K$ the residual evaluation ($O(NK)$) costs
+    (docs/performance.md), and at $N \\gg K$ the residual evaluation ($O(NK)$) costs
     about as much as the factorization.
 
     **Precision.** Fit in float64: the saddle-point matrices have condition
@@ -381,14 +349,16 @@ def fit_sharing(
       (static; defaults `max(n_centers // 10, d + 2)` and
       `max(n_centers // 10, 1)`).
     - `chunk`: static evaluation chunk (see `jaxsh.RBFModel`).
+    - `throw`: raise `SolveError` unless the status is `Status.converged`
+      (default `False`: check `fit.status`).
 
     **Returns:** a `SharingFit` (callable: `fit(x)` is `(M,)` or `(M, C)`).
 
     **Raises:** `ValueError` for bad shapes or options, too few samples
     ($N < d + 1$), NaN/inf input, non-positive `scale`, duplicate points and
     degenerate (e.g. coplanar) points — checked on concrete input. A
-    singular system met inside the solve is reported as status
-    `"singular"`.
+    singular system met inside the solve is reported as
+    `Status.singular` (or raised with `throw=True`).
 
     Comparable to `scipy.interpolate.RBFInterpolator(kernel="linear", degree=1)`
     (isotropic, all points as centres).
@@ -411,20 +381,25 @@ def fit_sharing(
         tol = float(tol)
         if not tol >= 0:
             raise ValueError(f"`tol` must be >= 0, got {tol}")
-    chunk = auto_chunk(n_centers) if chunk is None else _check_int(chunk, "chunk")
+    chunk = jaxsh.rbf_auto_chunk(n_centers) if chunk is None else _check_int(chunk, "chunk")
+    w = jnp.ones((n,), points.dtype) if weights is None else weights
+    wv = values * w[:, None]
+    data_ss = jnp.sum(wv * wv)
+    count = n * values.shape[1]
 
     if n_centers == n:
-        lam, poly, ok = _interpolate(points, values, scale, smoothing)
+        model = jaxsh.rbf_fit(points, values[:, 0] if single else values, scale, smoothing, chunk=chunk)
+        solved = _finite(model.weights, model.poly)
         idx = jnp.arange(n)
-        rel = jnp.asarray([0.0 if float(sm) == 0.0 else np.nan], dtype=points.dtype)
-        if float(sm) != 0.0:
-            w = jnp.ones((n,), points.dtype) if weights is None else weights
-            pred = _evaluate(points, lam, poly, scale, points, chunk)
-            r = (values - pred) * w[:, None]
-            wv = values * w[:, None]
-            rel = (jnp.sqrt(jnp.sum(r * r)) / jnp.sqrt(jnp.sum(wv * wv)))[None]
+        if float(sm) == 0.0 and solved:
+            rss = jnp.zeros((), points.dtype)  # an interpolant: exact at the samples
+        else:
+            r = (values - model(points).reshape(n, -1)) * w[:, None]
+            rss = jnp.sum(r * r)
+        rounds = 0
         hist_c = jnp.asarray([n])
-        code = jnp.asarray(0 if bool(ok) else 2)
+        hist_rel = rms_pair(rss, data_ss, count)[1][None]
+        reached = True
     else:
         n_add = max(n_centers // 10, 1) if n_add is None else _check_int(n_add, "n_add")
         n_init = max(n_centers // 10, d + 2) if n_init is None else _check_int(n_init, "n_init", lo=d + 1)
@@ -435,7 +410,6 @@ def fit_sharing(
         pad = np.zeros(n_centers + n_add, dtype=np.int32)
         pad[:count0] = idx0
         n_rounds = 2 + -(-(n_centers - min(count0, n_centers)) // n_add)
-        w = jnp.ones((n,), points.dtype) if weights is None else weights
         t = jnp.asarray(-1.0 if tol is None else tol, dtype=points.dtype)
         is_c = np.zeros(n, dtype=bool)
         is_c[idx0] = True
@@ -445,21 +419,31 @@ def fit_sharing(
         k = int(st.count)
         lam, poly = st.lam[:k], st.poly
         idx = st.idx[:k]
-        r = int(st.round) + 1
-        hist_c, rel = st.hist_count[:r], st.hist_rel[:r]
-        final = float(st.rel)
-        if not np.isfinite(final):
-            code = 2
-        elif tol is not None and final > tol:
-            code = 1
-        else:
-            code = 0
-        code = jnp.asarray(code)
-    centers = points[idx]
-    if single:
-        lam, poly = lam[:, 0], poly[:, 0]
-    model = jaxsh.RBFModel(centers, lam, poly, scale, chunk=chunk)
-    return SharingFit(model, idx, hist_c, rel, code)
+        rounds = int(st.round)
+        hist_c, hist_rel = st.hist_count[: rounds + 1], st.hist_rel[: rounds + 1]
+        solved = _finite(lam, poly)
+        rss = st.rss
+        reached = tol is None or not float(st.rel) > tol
+        if single:
+            lam, poly = lam[:, 0], poly[:, 0]
+        model = jaxsh.RBFModel(points[idx], lam, poly, scale, chunk=chunk)
+    rms, rel = rms_pair(rss, data_ss, count)
+    if not solved:
+        status = Status.singular
+    elif not (np.isfinite(float(rss)) and np.isfinite(float(rel))):
+        status = Status.nonfinite
+    elif not reached:
+        status = Status.tolerance_not_reached
+    else:
+        status = Status.converged
+    stats = {"n_centers": jnp.asarray(model.n_centers), "rss": rss, "data_ss": data_ss, "count": jnp.asarray(count)}
+    fit = SharingFit(model=model, center_index=idx, history_centers=hist_c, history_rms=hist_rel, status=status,
+                     iterations=jnp.asarray(rounds), rms=rms, rel_rms=rel, stats=stats)
+    return finish(fit, throw)
+
+
+def _finite(*arrays) -> bool:
+    return all(bool(jnp.all(jnp.isfinite(a))) for a in arrays)
 
 
 def _initial_subset(p, n_init, n_centers, key):
@@ -620,11 +604,58 @@ def _render_geometry(normal, view, light, mask):
     return shape, nsafe, vsafe, lsafe, jnp.where(ok, cos_i, 0.0), ok
 
 
-class RBFReflectance(eqx.Module):
+def _rendered_rows(ok):
+    """Flat indices of the rendered pixels, padded to a power of two (few distinct shapes to compile), and their count.
+
+    `None` when `ok` is traced: then every pixel is evaluated.
+    """
+    c = _concrete(ok)
+    if c is None:
+        return None
+    idx = np.flatnonzero(c.reshape(-1))
+    m = idx.size
+    size = max(1, min(c.size, 1 << max(m - 1, 0).bit_length()))
+    sel = np.zeros(size, dtype=np.int32)  # padding rows: pixel 0 (substitute geometry), discarded below
+    sel[:m] = idx
+    return jnp.asarray(sel), m
+
+
+def _eval_rendered(fn, ok, *rows):
+    """`fn(*rows)` at the rendered pixels only (gather, evaluate, scatter), zero at the others.
+
+    `rows` are flat `(P, k)` arrays (or `None`); `fn` returns an array or a
+    tuple of arrays with `P` leading rows. Same values as evaluating every
+    pixel and masking, at the cost of the rendered pixels only (Zickler
+    sec. 8.2 renders objects that cover part of the frame).
+    """
+    found = _rendered_rows(ok)
+    if found is None:
+        return fn(*rows)
+    sel, m = found
+    total = rows[0].shape[0]
+    vals = fn(*(None if r is None else r[sel] for r in rows))
+    keep = sel[:m]
+    return jax.tree.map(lambda v: jnp.zeros((total,) + v.shape[1:], v.dtype).at[keep].set(v[:m]), vals)
+
+
+def _combined(fits):
+    """`(status, iterations, rms, rel_rms)` of several `SharingFit`s: `worst` status, summed rounds, pooled RMS."""
+    status = worst(*(f.status for f in fits))
+    iterations = sum(jnp.asarray(f.iterations) for f in fits)
+    rms, rel = rms_pair(sum(f.stats["rss"] for f in fits), sum(f.stats["data_ss"] for f in fits),
+                        sum(f.stats["count"] for f in fits))
+    return status, iterations, rms, rel
+
+
+class RBFReflectance(Solution):
     """An RBF BRDF $\\tilde f(u, v, w)$ (eq. 12) or SBRDF $\\tilde f(x, y, u, v, w)$ (eq. 13).
 
     **Fields:** `fit` (`SharingFit`, its `model` the `jaxsh.RBFModel`),
     `spatial` (static bool: 5-D with surface coordinates).
+
+    The result contract (`Solution`) is the fit's: `status`, `iterations`,
+    `rms`, `rel_rms`, `stats` are those of `fit`; `estimate` is the
+    reflectance model itself.
 
     `brdf(wi, wo, n, xy=None)` evaluates the reflectance `(..., C)`;
     `render(normal, view, light, irradiance, mask, xy)` predicts an image
@@ -636,6 +667,22 @@ class RBFReflectance(eqx.Module):
 
     fit: SharingFit
     spatial: bool = eqx.field(static=True)
+    status: Status
+    iterations: Int[Array, ""]
+    rms: Float[Array, ""]
+    rel_rms: Float[Array, ""]
+    stats: dict
+
+    def __init__(self, fit: SharingFit, spatial: bool):
+        self.fit = fit
+        self.spatial = bool(spatial)
+        self.status, self.iterations, self.rms, self.rel_rms = fit.status, fit.iterations, fit.rms, fit.rel_rms
+        self.stats = fit.stats
+
+    @property
+    def estimate(self) -> "RBFReflectance":
+        """The reflectance model itself (it has `brdf` and `render`)."""
+        return self
 
     def brdf(self, wi, wo, n, xy=None):
         if self.spatial and xy is None:
@@ -651,41 +698,49 @@ class RBFReflectance(eqx.Module):
 
     def render(self, normal, view, light, irradiance=1.0, mask=None, xy=None):
         """Predicted radiance `(H, W, C)` (or `(H, W)`) for a directional light (Zickler 2006 sec. 8.2)."""
+        if self.spatial and xy is None:
+            raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
         shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
-        f = jnp.maximum(self.brdf(li, v, n, xy), 0.0)
+        xyf = _flat(xy, shape, 2) if self.spatial else None
+        f = _eval_rendered(lambda a, b, c, q: jnp.maximum(self.brdf(a, b, c, q), 0.0), ok,
+                           _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), xyf)
+        f = f.reshape(shape + f.shape[1:])
         e = jnp.asarray(irradiance, f.dtype)
         scale = jnp.where(ok, cos, 0.0)
         return f * (scale[..., None] * e if f.ndim > len(shape) else scale * e)
 
 
-def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothing=0.0, key=None, **kwargs) -> RBFReflectance:
+def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothing=0.0, key=None, *, throw: bool = False,
+                    **kwargs) -> RBFReflectance:
     """Homogeneous BRDF $\\tilde f(u, v, w)$ of Zickler 2006 eq. 12, $M = \\mathrm{diag}(1, 1, m_w)$.
 
     Greedy centres with residuals weighted by $\\cos\\theta_i$ (sec. 6).
     Extra keyword arguments go to `fit_sharing` (`tol`, `n_init`, `n_add`,
-    `chunk`). The paper's $m_w$ is 0.1–0.5.
+    `chunk`). The paper's $m_w$ is 0.1–0.5. `throw=True` raises
+    `SolveError` unless the fit's status is `Status.converged`.
     """
     if samples.points.shape[1] != 3:
         raise ValueError(f"`samples` must have (u, v, w) points (N, 3), got {tuple(samples.points.shape)}")
     fit = fit_sharing(samples.points, samples.values, n_centers, scale=jnp.asarray([1.0, 1.0, m_w]),
                       smoothing=smoothing, key=key, weights=samples.cos_i, **kwargs)
-    return RBFReflectance(fit, False)
+    return finish(RBFReflectance(fit, False), throw)
 
 
-def fit_sbrdf(samples: Samples, n_centers: int, m_xy: float = 0.3, m_w: float = 0.3, smoothing=0.0, key=None,
-              **kwargs) -> RBFReflectance:
+def fit_sbrdf(samples: Samples, n_centers: int, m_xy: float = 0.3, m_w: float = 0.3, smoothing=0.0, key=None, *,
+              throw: bool = False, **kwargs) -> RBFReflectance:
     """Smoothly varying SBRDF $\\tilde f(x, y, u, v, w)$ of Zickler 2006 eq. 13, $M = \\mathrm{diag}(m_{xy}, m_{xy}, 1, 1, m_w)$.
 
     Reflectance sharing: one 5-D interpolant over all surface points, so
     angular samples seen at one point inform its neighbours (sec. 7). The
-    paper's $m_{xy}$ is 0.2–0.4 for $(x, y) \\in [0, 1]^2$.
+    paper's $m_{xy}$ is 0.2–0.4 for $(x, y) \\in [0, 1]^2$. Extra keyword
+    arguments and `throw` as in `fit_homogeneous`.
     """
     if samples.points.shape[1] != 5:
         raise ValueError(f"`samples` must have (x, y, u, v, w) points (N, 5), got {tuple(samples.points.shape)}")
     fit = fit_sharing(samples.points, samples.values, n_centers,
                       scale=jnp.asarray([m_xy, m_xy, 1.0, 1.0, m_w]), smoothing=smoothing, key=key,
                       weights=samples.cos_i, **kwargs)
-    return RBFReflectance(fit, True)
+    return finish(RBFReflectance(fit, True), throw)
 
 
 def _lookup(amap, xy):
@@ -702,25 +757,50 @@ def _fill(amap):
     return np.where(np.isnan(amap), med[None, None, :], amap)
 
 
-class DichromaticReflectance(eqx.Module):
+class DichromaticReflectance(Solution):
     """Zickler 2006 eq. 14: $I_k = s_k\\,(a_k(\\vec x)\\,d_k(\\vec q) + g(\\vec q))\\,E\\cos\\theta_i$.
 
     **Fields:** `albedo` `(H, W, 3)` map over $(x, y) \\in [0, 1]^2$ (the
     per-point median of the diffuse samples, sec. 8.1); `diffuse`
     (`SharingFit`, 3 channels $d_k$, one set of centres); `specular`
     (`SharingFit`, scalar $g$).
+
+    Result contract (`Solution`), from the two fits: `status` the `worst`
+    of theirs, `iterations` their greedy rounds summed, `rms`/`rel_rms`
+    pooled over the samples and channels of both fits, `stats`
+    `{"diffuse": ..., "specular": ...}` (each fit's stats); `estimate` is
+    the model itself.
     """
 
     albedo: Array
     diffuse: SharingFit
     specular: SharingFit
+    status: Status
+    iterations: Int[Array, ""]
+    rms: Float[Array, ""]
+    rel_rms: Float[Array, ""]
+    stats: dict
+
+    def __init__(self, albedo, diffuse: SharingFit, specular: SharingFit):
+        self.albedo, self.diffuse, self.specular = albedo, diffuse, specular
+        self.status, self.iterations, self.rms, self.rel_rms = _combined((diffuse, specular))
+        self.stats = {"diffuse": diffuse.stats, "specular": specular.stats}
+
+    @property
+    def estimate(self) -> "DichromaticReflectance":
+        """The reflectance model itself (it has `render`)."""
+        return self
 
     def render(self, normal, view, light, xy, color=(1.0, 1.0, 1.0), irradiance=1.0, mask=None):
         """Predicted radiance `(H, W, 3)` under a directional light of RGB unit colour `color`."""
         shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
-        q = jaxsh.sbrdf_points(_flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
-        d = jnp.maximum(self.diffuse(q), 0.0).reshape(shape + (3,))
-        g = jnp.maximum(self.specular(q), 0.0).reshape(shape)
+
+        def parts(a, b, c, p):
+            q = jaxsh.sbrdf_points(a, b, c, p)
+            return jnp.maximum(self.diffuse(q), 0.0), jnp.maximum(self.specular(q), 0.0)
+
+        d, g = _eval_rendered(parts, ok, _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
+        d, g = d.reshape(shape + (3,)), g.reshape(shape)
         a = _lookup(self.albedo, jnp.asarray(xy))
         s = jnp.asarray(color, d.dtype).reshape((1,) * len(shape) + (3,))
         rad = s * (a * d + g[..., None])
@@ -730,7 +810,7 @@ class DichromaticReflectance(eqx.Module):
 def fit_dichromatic(
     diffuse_images, specular_images, colors, normal, view, lights, xy, n_centers_diffuse: int,
     n_centers_specular: int, irradiance=1.0, mask=None, m_xy: float = 0.3, m_w: float = 0.3, smoothing=0.0,
-    key=None, min_cos: float = 0.0, **kwargs,
+    key=None, min_cos: float = 0.0, *, throw: bool = False, **kwargs,
 ) -> DichromaticReflectance:
     """Fit the dichromatic SBRDF of Zickler 2006 eq. 14 from separated images (sec. 8.1).
 
@@ -744,7 +824,8 @@ def fit_dichromatic(
     **Arguments:** `diffuse_images`, `specular_images` `(L, H, W, 3)`;
     `colors` `(L, 3)` unit RGB source colours $\\hat s$; `normal`, `view`,
     `lights`, `xy`, `irradiance`, `mask` as in `reflectance_samples`.
-    Pixels never lit keep the median albedo of the others.
+    Pixels never lit keep the median albedo of the others. `throw=True`
+    raises `SolveError` unless both fits converged (`fit_homogeneous`).
     """
     dimg = np.asarray(diffuse_images, np.float64)
     simg = np.asarray(specular_images, np.float64)
@@ -778,26 +859,47 @@ def fit_dichromatic(
     ss = reflectance_samples(spec, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
     gfit = fit_sharing(ss.points, ss.values[:, 0], n_centers_specular, scale=sc, smoothing=smoothing, key=key,
                        weights=ss.cos_i, **kwargs)
-    return DichromaticReflectance(jnp.asarray(albedo), dfit, gfit)
+    return finish(DichromaticReflectance(jnp.asarray(albedo), dfit, gfit), throw)
 
 
-class OneImageReflectance(eqx.Module):
+class OneImageReflectance(Solution):
     """Zickler 2006 eq. 15: $I_k = s_k\\,(a_k(\\vec x) + g(x, y, u, v))\\,E\\cos\\theta_i$.
 
     The one-image special case: all samples share $w$, so the specular
     function drops it; the diffuse part is Lambertian with the albedo map
     `albedo` `(H, W, 3)` read off the image. `specular` is the 4-D
-    `SharingFit`.
+    `SharingFit`; the result contract (`Solution`: `status`, `iterations`,
+    `rms`, `rel_rms`, `stats`) is its; `estimate` is the model itself.
     """
 
     albedo: Array
     specular: SharingFit
+    status: Status
+    iterations: Int[Array, ""]
+    rms: Float[Array, ""]
+    rel_rms: Float[Array, ""]
+    stats: dict
+
+    def __init__(self, albedo, specular: SharingFit):
+        self.albedo, self.specular = albedo, specular
+        self.status, self.iterations, self.rms, self.rel_rms = (
+            specular.status, specular.iterations, specular.rms, specular.rel_rms)
+        self.stats = specular.stats
+
+    @property
+    def estimate(self) -> "OneImageReflectance":
+        """The reflectance model itself (it has `render`)."""
+        return self
 
     def render(self, normal, view, light, xy, color=(1.0, 1.0, 1.0), irradiance=1.0, mask=None):
         """Predicted radiance `(H, W, 3)` under a new directional light / view."""
         shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
-        q = jaxsh.sbrdf_points(_flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
-        g = jnp.maximum(self.specular(q[:, :4]), 0.0).reshape(shape)
+
+        def spec(a, b, c, p):
+            return jnp.maximum(self.specular(jaxsh.sbrdf_points(a, b, c, p)[:, :4]), 0.0)
+
+        g = _eval_rendered(spec, ok, _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
+        g = g.reshape(shape)
         a = _lookup(self.albedo, jnp.asarray(xy))
         rad = jnp.asarray(color, g.dtype).reshape((1,) * len(shape) + (3,)) * (a + g[..., None])
         return rad * (jnp.where(ok, cos, 0.0) * jnp.asarray(irradiance, g.dtype))[..., None]
@@ -805,7 +907,7 @@ class OneImageReflectance(eqx.Module):
 
 def fit_one_image(
     diffuse_image, specular_image, color, normal, view, light, xy, n_centers: int, irradiance=1.0, mask=None,
-    m_xy: float = 0.3, smoothing=0.0, key=None, min_cos: float = 0.0, **kwargs,
+    m_xy: float = 0.3, smoothing=0.0, key=None, min_cos: float = 0.0, *, throw: bool = False, **kwargs,
 ) -> OneImageReflectance:
     """Fit eq. 15 of Zickler 2006 from one separated image (sec. 8.4).
 
@@ -815,7 +917,7 @@ def fit_one_image(
     $\\sum_k I_{s,k}s_k/(E\\cos\\theta_i\\sum_k s_k^2)$.
 
     **Arguments:** `diffuse_image`, `specular_image` `(H, W, 3)`; `color`
-    `(3,)`; `light` `(3,)`; the rest as in `fit_dichromatic`.
+    `(3,)`; `light` `(3,)`; the rest (and `throw`) as in `fit_dichromatic`.
     """
     dimg = np.asarray(diffuse_image, np.float64)
     simg = np.asarray(specular_image, np.float64)
@@ -836,4 +938,4 @@ def fit_one_image(
     pts = ss.points[:, :4]
     gfit = fit_sharing(pts, ss.values[:, 0], n_centers, scale=jnp.asarray([m_xy, m_xy, 1.0, 1.0]),
                        smoothing=smoothing, key=key, weights=ss.cos_i, **kwargs)
-    return OneImageReflectance(jnp.asarray(albedo), gfit)
+    return finish(OneImageReflectance(jnp.asarray(albedo), gfit), throw)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -128,8 +127,9 @@ def _demo_x64(args) -> int:
         d = os.path.dirname(args.json)
         if d:
             os.makedirs(d, exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=2)
+        from jaxsh.io import write_json
+
+        write_json(args.json, report)
         print(f"report written to {args.json}")
     return 0 if ok else 1
 
@@ -137,18 +137,13 @@ def _demo_x64(args) -> int:
 def _fit(args) -> int:
     import jax
 
-    from jaxsh.io import ManifestError
-
     from ._fit_manifest import fit_manifest
 
-    try:
-        with jax.enable_x64(True):
-            result = fit_manifest(args.manifest, args.out)
-    except (ManifestError, FileNotFoundError, ValueError) as e:
-        print(f"jaxsh fit: {e}", file=sys.stderr)
-        return 2
+    with jax.enable_x64(True):
+        result = fit_manifest(args.manifest, args.out)
     b = result["brdf"]
-    print(f"status {result['status']}, relative RMS {result['rel_rms']:.4f}")
+    rel = result["rel_rms"]
+    print(f"status {result['status']}, relative RMS {'undefined' if rel is None else f'{rel:.4f}'}")
     print(f"kd {b['kd']}  ks {b['ks']}  mu {b['mu']}  sigma {b['sigma']}")
     print(f"results in {args.out}/")
     return 0 if result["status"] in ("converged", "ill_conditioned") else 1
@@ -157,18 +152,19 @@ def _fit(args) -> int:
 def _render(args) -> int:
     import jax
 
-    from jaxsh.io import ManifestError
-
     from ._render_manifest import render_manifest
 
-    try:
-        with jax.enable_x64(True):
-            written = render_manifest(args.manifest, args.out)
-    except (ManifestError, FileNotFoundError, ValueError) as e:
-        print(f"jaxsh render: {e}", file=sys.stderr)
-        return 2
+    with jax.enable_x64(True):
+        written = render_manifest(args.manifest, args.out)
     print(f"wrote {len(written)} files to {args.out}/")
     return 0
+
+
+def _one_line(e: BaseException) -> str:
+    msg = " ".join(str(e).split()) or type(e).__name__
+    if isinstance(e, OSError) and e.filename is not None and os.fspath(e.filename) not in msg:
+        msg = f"{e.filename}: {msg}"
+    return msg
 
 
 def main(argv=None) -> int:
@@ -192,7 +188,20 @@ def main(argv=None) -> int:
     q.add_argument("--out", default="render_out", help="output directory (view_000.exr/.png, ...)")
     q.set_defaults(func=_render)
     args = parser.parse_args(argv)
-    return args.func(args)
+    # Every error is one line naming the file and the field: exit 2 for bad input (manifest, files,
+    # options, --out), 1 for anything else that fails; a failed solve returns 1 from its command.
+    # JAXSH_TRACEBACK=1 lets exceptions through, for debugging.
+    if os.environ.get("JAXSH_TRACEBACK"):
+        return args.func(args)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as e:  # ManifestError is a ValueError
+        print(f"jaxsh {args.command}: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - the command line shows no tracebacks
+        print(f"jaxsh {args.command}: failed: {type(e).__name__}: {_one_line(e)} "
+              "(set JAXSH_TRACEBACK=1 for the traceback)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ def scipy_complex_sh(dirs, lmax):
 
 
 def scipy_real_sh(dirs, lmax):
-    """Real SH built from scipy's complex SH with DESIGN.md's convention.
+    """Real SH built from scipy's complex SH with the convention of docs/conventions.md.
 
     Y_{l,m} = sqrt2 (-1)^m Re Y_l^m, Y_{l,-m} = sqrt2 (-1)^m Im Y_l^m (m > 0).
     """
@@ -34,7 +34,7 @@ def scipy_real_sh(dirs, lmax):
 
 
 def tol(dtype, x64=1e-10, x32=1e-4):
-    """Tolerance by precision (STYLE.md item 9)."""
+    """Tolerance by precision (docs/design.md, "Tests")."""
     return x64 if np.dtype(dtype) == np.float64 else x32
 
 

@@ -91,3 +91,76 @@ def test_sbrdf_points(rng):
     np.testing.assert_array_equal(q5[:, 2:], q)
     with pytest.raises(ValueError, match="xy"):
         jaxsh.sbrdf_points(wi, wo, n, xy[:, :1])
+
+
+# --------------------------------------------------------------------------- the saddle-point solve (eq. 10)
+
+
+def _samples(rng, n, d, c=None):
+    x = rng.uniform(-1, 1, size=(n, d))
+    y = np.sin(2 * x[:, 0]) * np.cos(x[:, 1]) + 0.3 * x[:, -1] ** 2
+    if c is not None:
+        y = np.stack([y * (k + 1) + k for k in range(c)], -1)
+    return x, y
+
+
+@pytest.mark.parametrize("channels", [None, 2])
+@pytest.mark.parametrize("smoothing", [0.0, 0.1])
+def test_rbf_fit_equals_scipy(rng, channels, smoothing):
+    from scipy.interpolate import RBFInterpolator
+
+    x, y = _samples(rng, 120, 3, channels)
+    s = np.array([1.0, 0.7, 0.3])
+    model = jaxsh.rbf_fit(x, y, s, smoothing)
+    assert isinstance(model, jaxsh.RBFModel) and model.channels == channels and model.n_centers == 120
+    assert model.chunk == jaxsh.rbf_auto_chunk(120)
+    xt = rng.uniform(-1.2, 1.2, size=(200, 3))
+    # scipy's kernel is -r, its smoothing adds to the diagonal: the system Psi - rho I of eq. 10
+    ref = RBFInterpolator(x * s, y, kernel="linear", degree=1, smoothing=smoothing)(xt * s)
+    np.testing.assert_allclose(np.asarray(model(xt)), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+    # the public functional form gives the same coefficients
+    lam, poly = jaxsh.rbf_solve(x, y, s, smoothing)
+    np.testing.assert_allclose(lam, model.weights if channels else model.weights[:, 0], rtol=1e-12, atol=1e-14)
+
+
+def test_rbf_solve_padded_active_mask(rng):
+    """Inactive rows are decoupled: weight exactly 0, the rest is the fit of the active centres alone."""
+    from scipy.interpolate import RBFInterpolator
+
+    x, y = _samples(rng, 60, 3, 2)
+    s = np.array([1.0, 1.0, 0.5])
+    active = np.zeros(60, bool)
+    active[rng.choice(60, 35, replace=False)] = True
+    box = (x.min(0) - 0.3, x.max(0) + 0.2)  # any box: the polynomial spans the same space
+    solve = jax.jit(lambda c, v, a: jaxsh.rbf_solve(c, v, s, 0.0, active=a, bounds=box))
+    lam, poly = solve(x, y, active)
+    assert lam.shape == (60, 2) and poly.shape == (4, 2)
+    assert np.all(np.asarray(lam)[~active] == 0.0)
+    xt = rng.uniform(-1, 1, size=(100, 3))
+    ref = RBFInterpolator(x[active] * s, y[active], kernel="linear", degree=1)(xt * s)
+    np.testing.assert_allclose(jaxsh.rbf_evaluate(x, lam, poly, xt, s), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_rbf_solve_errors_and_singular(rng):
+    x, y = _samples(rng, 10, 3)
+    with pytest.raises(ValueError, match="values"):
+        jaxsh.rbf_solve(x, y[:-1])
+    with pytest.raises(ValueError, match="active"):
+        jaxsh.rbf_solve(x, y, active=np.ones(9, bool))
+    with pytest.raises(ValueError, match="bounds"):
+        jaxsh.rbf_solve(x, y, bounds=(np.zeros(2), np.ones(2)))
+    with pytest.raises(ValueError, match="smoothing"):
+        jaxsh.rbf_solve(x, y, smoothing=np.zeros(2))
+    with pytest.raises(ValueError, match="too few centres"):
+        jaxsh.rbf_fit(x[:3], y[:3])
+    # repeated centres: the system is singular, the result non-finite (no value checks here)
+    dup = np.concatenate([x, x[:1]])
+    lam, _ = jaxsh.rbf_solve(dup, np.concatenate([y, y[:1]]))
+    assert not np.all(np.isfinite(np.asarray(lam)))
+
+
+def test_rbf_auto_chunk():
+    for k in (1, 37, 500, 2000, 10**6):
+        c = jaxsh.rbf_auto_chunk(k)
+        assert 64 <= c <= 16384 and c & (c - 1) == 0
+        assert c * k <= (1 << 21) or c == 64

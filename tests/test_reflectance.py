@@ -605,3 +605,65 @@ def test_half_angle_matches_rusinkiewicz_theta_h(rng):
     a = np.array([[np.sin(e), 0.0, np.cos(e)]])
     b = np.array([[np.sin(e), 0.0, np.cos(e)]])
     np.testing.assert_allclose(np.asarray(jaxsh.half_angle(a, b, n[None])), [e], rtol=1e-6)
+
+
+def _half_angle_grad_closed_form(wi, wo, n):
+    """d theta_h / d n for theta_h = atan2(|h x n|, h . n), h = wi + wo, written out in NumPy."""
+    h = wi + wo
+    x = np.cross(h, n)
+    s = np.linalg.norm(x)
+    c = h @ n
+    grad_s = np.cross(x, h) / s  # d|h x n|/dn = ((h x n) x h) / |h x n|
+    return (c * grad_s - s * h) / (s * s + c * c)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_half_angle_gradient_safe_at_and_near_zero(dtype):
+    """theta_h = 0 (light, view, normal aligned): exact value, finite gradient (0: the cone's symmetric
+    subgradient); at theta_h = 1e-7: jacfwd = jacrev = the closed-form gradient (float64 and float32)."""
+    import jaxsh
+
+    u = np.array([0.3, 0.2, 0.93])
+    u = (u / np.linalg.norm(u)).astype(dtype)
+    for n0 in (np.array([0.0, 0.0, 1.0], dtype), u):
+        f = lambda n: jaxsh.half_angle(n0, n0, n)
+        th = float(f(n0))
+        # exact at the pole; elsewhere |h x n| of parallel vectors may round (FMA) to ~1 ulp
+        assert th == 0.0 if n0[2] == 1 else th <= 2 * np.finfo(dtype).eps
+        for jac in (jax.grad(f), jax.jacfwd(f), jax.jacrev(f)):
+            g = np.asarray(jac(n0))
+            assert g.dtype == dtype and np.all(np.isfinite(g))
+            if th == 0.0:
+                np.testing.assert_array_equal(g, 0.0)
+    e = 1e-7
+    w = np.array([np.sin(e), 0.0, np.cos(e)], dtype)
+    n = np.array([0.0, 0.0, 1.0], dtype)
+    f = lambda n: jaxsh.half_angle(w, w, n)
+    np.testing.assert_allclose(float(f(n)), e, rtol=1e-6)
+    want = _half_angle_grad_closed_form(w.astype(np.float64), w.astype(np.float64), n.astype(np.float64))
+    tol = 1e-10 if dtype == np.float64 else 1e-5
+    fwd, rev = np.asarray(jax.jacfwd(f)(n)), np.asarray(jax.jacrev(f)(n))
+    np.testing.assert_allclose(fwd, rev, rtol=tol, atol=tol)
+    np.testing.assert_allclose(rev, want, rtol=tol, atol=tol)
+    if dtype == np.float64:  # a central difference with a step below theta_h
+        h = 1e-10
+        fd = [(float(f(n + h * ek)) - float(f(n - h * ek))) / (2 * h) for ek in np.eye(3)]
+        np.testing.assert_allclose(fd, want, rtol=1e-5, atol=1e-5)
+
+
+def test_half_angle_kernel_in_the_brdfs(rng):
+    """torrance_sparrow / cook_torrance use the same safe kernel: finite gradients at theta_h = 0, and
+    torrance_sparrow's lobe from theta_h computed independently (arccos, float64) away from 0."""
+    n = np.array([0.0, 0.0, 1.0])
+    for fn in (lambda wi: rf.torrance_sparrow(wi, n, n, 0.2, 0.5, 1.5, 0.1), lambda wi: rf.cook_torrance(wi, n, n, 0.2, 0.5, 0.3, 1.5)):
+        g = np.asarray(jax.grad(fn)(n))
+        assert np.all(np.isfinite(g))
+        np.testing.assert_allclose(np.asarray(jax.jacfwd(fn)(n)), g, atol=1e-12)
+    wi = rng.normal(size=(50, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo = np.array([0.3, 0.0, 0.95]) / np.linalg.norm([0.3, 0.0, 0.95])
+    h = (wi + wo) / np.linalg.norm(wi + wo, axis=1, keepdims=True)
+    th = np.arccos(np.clip(h @ n, -1, 1))
+    want = 0.2 + 0.5 * np.asarray(rf.fresnel_normalized(wo @ n, 1.5)) * np.exp(-((th / 0.1) ** 2)) / (np.pi * 0.01) / (4 * (wi @ n) * (wo @ n))
+    np.testing.assert_allclose(rf.torrance_sparrow(wi, wo, n, 0.2, 0.5, 1.5, 0.1), want, rtol=1e-9)

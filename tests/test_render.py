@@ -232,3 +232,47 @@ def test_split_disk_sources_slow_fast():
     assert np.sqrt(np.mean((exact - delta) ** 2)) / np.sqrt(np.mean(exact**2)) < 2e-3
     with pytest.raises(ValueError, match="angular_radii"):
         jaxsh.split_disk_sources(dirs, np.array([0.3]), rad, 0.1, 4)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("axis", ["pole", "generic"])
+def test_normal_gradient_at_theta_h_zero(dtype, axis):
+    """Normal, view and a fast source aligned (theta_h = 0: exactly at the pole, to rounding elsewhere)
+    and 1e-7 away from it: the gradient of `render_practical` with respect to the normal is finite,
+    jacfwd = jacrev, and (float64) equals a central difference; float32 agrees with float64."""
+    if axis == "pole":
+        u, tilt = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    else:
+        u = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])
+        tilt = np.array([0.93, 0.0, -0.3]) / np.linalg.norm([0.93, 0.0, -0.3])  # orthogonal to u
+    slow = np.asarray(jaxsh.disk_light_sh(D1, R1, L1, 8))
+    light = jaxsh.Lighting(slow.astype(dtype), u[None].astype(dtype), E2[None].astype(dtype))
+    brdf = jaxsh.TorranceSparrow(KD.astype(dtype), KS.astype(dtype), 1.5, 0.2)
+    v = u.astype(dtype)
+
+    def f(n):
+        return jnp.sum(jaxsh.render_practical(n[None], v, brdf, light).total)
+
+    def f64(n):
+        b64 = jaxsh.TorranceSparrow(KD, KS, 1.5, 0.2)
+        return jnp.sum(jaxsh.render_practical(n[None], u, b64, jaxsh.Lighting(slow, u[None], E2[None])).total)
+
+    tol = 1e-10 if dtype == np.float64 else 2e-4
+    for e in (0.0, 1e-7):
+        n0 = (np.cos(e) * u + np.sin(e) * tilt).astype(dtype)
+        th = float(jaxsh.half_angle(v, v, n0))
+        if e == 0.0:
+            assert th == 0.0 if axis == "pole" else th <= 2 * np.finfo(dtype).eps  # |h x n| rounds (FMA)
+        g = np.asarray(jax.grad(f)(n0))
+        assert g.dtype == dtype and np.all(np.isfinite(g))
+        np.testing.assert_allclose(np.asarray(jax.jacfwd(f)(n0)), g, rtol=tol, atol=tol * np.abs(g).max())
+        if dtype == np.float64:
+            h = 1e-6
+            fd = np.array([(float(f(n0 + h * ek)) - float(f(n0 - h * ek))) / (2 * h) for ek in np.eye(3)])
+            np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+        else:
+            want = np.asarray(jax.grad(f64)(n0.astype(np.float64)))
+            np.testing.assert_allclose(g, want, rtol=2e-4, atol=2e-4 * np.abs(want).max())
+    # the factored model has the same gradient
+    terms_f = lambda n: jnp.sum(jaxsh.practical_terms(n[None], v[None], light)(brdf))
+    np.testing.assert_allclose(np.asarray(jax.grad(terms_f)(v)), np.asarray(jax.grad(f)(v)), rtol=tol, atol=tol)

@@ -47,7 +47,7 @@ def test_sh_index_bad_m():
 
 
 def test_real_convention_l1_pinned():
-    """DESIGN.md: Y_{1,-1} = +c y, Y_{1,0} = +c z, Y_{1,1} = +c x, c = sqrt(3/4pi)."""
+    """docs/conventions.md: Y_{1,-1} = +c y, Y_{1,0} = +c z, Y_{1,1} = +c x, c = sqrt(3/4pi)."""
     c = np.sqrt(3 / (4 * np.pi))
     for d in np.eye(3):
         y = np.asarray(jaxsh.real_sh(d, 1))

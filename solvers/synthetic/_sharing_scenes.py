@@ -16,7 +16,8 @@
   two Cook–Torrance lobes with a Fresnel term plus a weak coloured diffuse
   term — a stand-in for the MERL "metallic-blue" data, which is not
   bundled), `oren_nayar_brdf`, `varying_cook_torrance` (roughness linear
-  in $x$, sec. 7.1), `textured_dichromatic` (sec. 8).
+  in $x$, sec. 7.1), `albedo_texture` and `dichromatic_components`
+  (the textured dichromatic scenes of sec. 8).
 * Baselines of figs. 7–9: `fit_ward` (isotropic Ward) and `fit_lafortune`
   (isotropic Lafortune, $3N + 1$ parameters a channel), fitted by
   Levenberg–Marquardt (optimistix) to the radiance residuals
@@ -318,7 +319,7 @@ def homogeneous_protocol(brdf, n_px=100, centers=(250, 500, 1000), m_w=0.5, min_
     `"valid"` over the pixels inside the sampled domain, per model, plus
     the per-image errors of the RBF models (`"per_image"`).
     """
-    from ._sharing import fit_homogeneous, reflectance_samples  # noqa: PLC0415
+    from .. import fit_homogeneous, reflectance_samples  # noqa: PLC0415
 
     normal, mask, _ = sphere_geometry(n_px)
     t_in = (np.arange(n_in) + 0.5) / n_in * (math.pi / 2)
@@ -363,7 +364,7 @@ def hemisphere_protocol(n_px=64, centers=(500, 1000, 2000), n_in=10, n_out=40, m
     $\\cos\\theta_i, \\cos\\theta_o >$ `min_cos` (`"valid"`) and over all lit
     pixels (`"all"`).
     """
-    from ._sharing import fit_sbrdf, reflectance_samples  # noqa: PLC0415
+    from .. import fit_sbrdf, reflectance_samples  # noqa: PLC0415
 
     normal, mask, xy = sphere_geometry(n_px)
     l_out = cone_lights(n_out, max_angle, phase=1.3)
@@ -408,7 +409,7 @@ def one_image_protocol(n_px=64, n_centers=1000, light=(0.35, 0.2, 0.915), novel=
     light. Returns the relative RMS error of the prediction (valid pixels
     and all lit pixels) and the images.
     """
-    from ._sharing import fit_one_image  # noqa: PLC0415
+    from .. import fit_one_image  # noqa: PLC0415
 
     normal, mask, xy = sphere_geometry(n_px)
     light = np.asarray(light) / np.linalg.norm(light)

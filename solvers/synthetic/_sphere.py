@@ -1,11 +1,15 @@
-"""Procedural inputs for the demo and notebooks (no files needed)."""
+"""Synthetic sphere captures and a procedural HDR sky: inputs for the demo, notebooks and tests (no files needed)."""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
 import jaxsh
+
+from .._data import Lighting, TorranceSparrow
 
 
 def procedural_sky(height: int, width: int, sun_dir=(0.5, 0.3, 0.81), sun_size: float = 0.08, rotation=None):
@@ -29,11 +33,6 @@ def procedural_sky(height: int, width: int, sun_dir=(0.5, 0.3, 0.81), sun_size: 
 
 
 # --------------------------------------------------------------------------- synthetic captures (R&H fig. 11 style)
-
-from typing import NamedTuple  # noqa: E402
-
-from ._data import Lighting, TorranceSparrow  # noqa: E402
-
 
 class SyntheticCapture(NamedTuple):
     """A synthetic capture: views of an object under known lighting, rendered by `jaxsh.render_reference`.

@@ -1,30 +1,9 @@
-"""Cameras, G-buffers and visibility: the geometry side of a capture.
+"""Ray casting: mesh G-buffers and visibility (NumPy / trimesh / Embree; not jitted).
 
-**Cameras** (DESIGN.md, "Capture manifest") follow OpenCV: +x right, +y
-down, +z forward; `cam_to_world` is the 4×4 matrix mapping camera to world
-coordinates, $x_w = R\\,x_c + t$. Pixel $(i, j)$ = (row, column) has its
-centre at image coordinates $(u, v) = (j + \\tfrac12, i + \\tfrac12)$.
-
-- Pinhole: the ray of pixel $(i, j)$ leaves the camera centre $t$ along
-  $R\\,((u - c_x)/f_x, (v - c_y)/f_y, 1)$, normalized.
-- Orthographic: the ray of pixel $(i, j)$ leaves the camera-frame point
-  $((j + \\tfrac12 - W/2)\\,s, (i + \\tfrac12 - H/2)\\,s, 0)$ along the camera
-  +z axis, with $s$ = `scale` (world units per pixel).
-
-**G-buffers** hold, per pixel, whether the ray hit the object (`mask`), the
-hit point, the unit surface normal, the unit view direction $\\omega_o$
-(from the surface *towards* the camera, i.e. minus the ray direction) and the
-depth: the camera-frame $z$ of the hit point (the OpenCV depth-map
-convention; the ray length times the cosine between ray and optical axis for
-a pinhole camera, the ray length itself for an orthographic one). Pixels
-that miss have `mask = False`, zero position, normal and depth, and still a
-valid view direction.
-
-`sphere_gbuffer` is analytic JAX (jitted, differentiable in the camera and
-the sphere). `mesh_gbuffer` and the visibility functions are **NumPy /
-trimesh ray casting, not jitted and not differentiable**: they are meant to
-be run once per capture and their outputs (arrays) fed to the jitted
-solvers.
+`mesh_gbuffer` and the visibility functions are **NumPy / trimesh ray
+casting, not jitted and not differentiable**: they are meant to be run once
+per capture and their outputs (arrays) fed to the jitted solvers. Camera
+conventions: `jaxsh._camera`; G-buffer conventions: `jaxsh._gbuffer`.
 
 **Ray-casting engines** (`engine=`): `"embree"` — Intel Embree through
 `embreex` and `trimesh.ray.ray_pyembree` (fast; the traversal is in
@@ -42,10 +21,11 @@ and (iii) the irradiance integrated "in the conventional angular-space way
 ... considering visibility" ($B_d$). These depend on geometry only and are
 precomputed here. For (iii) `visibility_sh` returns the transfer vector
 $T_{lm}(x) = \\int V_x(\\omega)\\max(\\omega\\cdot n, 0)\\,Y_{lm}(\\omega)\\,d\\omega$,
-so that $E(x) = \\sum_{lm} L_{lm}T_{lm}(x)$ is still linear in the lighting
-coefficients, as sec. 6.4 requires for inverse lighting (eq. 25). For an
-unoccluded point $T_{lm} = A_l Y_{lm}(n)$ ($A_l$ = `lambertian_spectrum`),
-and $E$ reduces to eq. 21.
+so that $E(x) = \\sum_{lm} L_{lm}T_{lm}(x)$ (the jitted
+`visibility_weighted_irradiance` of `jaxsh._gbuffer`) is still linear in the
+lighting coefficients, as sec. 6.4 requires for inverse lighting (eq. 25).
+For an unoccluded point $T_{lm} = A_l Y_{lm}(n)$ ($A_l$ =
+`lambertian_spectrum`), and $E$ reduces to eq. 21.
 
 Shadow rays start at $x + \\varepsilon n$ (default
 $\\varepsilon = 10^{-4}\\times$ `mesh.scale`) so that the surface does not
@@ -62,364 +42,25 @@ without casting a ray.
     for real-time rendering in dynamic, low-frequency lighting environments.
     SIGGRAPH 2002, 527–536. doi:10.1145/566570.566612 (the transfer vector).
 
-    Haines, E., Günther, J., Akenine-Möller, T. (2019). Precision
-    improvements for ray/sphere intersection. Ray Tracing Gems, ch. 7,
-    87–94. doi:10.1007/978-1-4842-4427-2_7
-
     Möller, T., Trumbore, B. (1997). Fast, minimum storage ray-triangle
     intersection. J. Graphics Tools 2(1), 21–28.
     doi:10.1080/10867651.1997.10487468
-
-    Hartley, R., Zisserman, A. (2004). *Multiple View Geometry in Computer
-    Vision*, 2nd ed., sec. 6.1 (the pinhole camera).
 """
 
 from __future__ import annotations
 
 import math
-from typing import ClassVar
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Real
-from ._custom_types import SequenceLike
+from jaxtyping import Array, ArrayLike, Float, Real
 
-from ._checks import as_float_array, check_lmax, check_positive_int, coeff_layout
+from ._camera import Camera, _camera_rays, _check_camera, _widest
+from ._checks import as_float_array, check_lmax, check_positive_int
+from ._gbuffer import GBuffer
 from ._reflectance import reflect, tangent_frame
 from ._rotation import rotate_sh
 from ._sh import real_sh
-
-# --------------------------------------------------------------------------- helpers
-
-
-def _widest(arrays):
-    """The common float dtype of `arrays` (strict promotion refuses f32+f64: take the widest)."""
-    try:
-        return jnp.result_type(*arrays)
-    except jax.dtypes.TypePromotionError:
-        return max((a.dtype for a in arrays), key=lambda d: jnp.dtype(d).itemsize)
-
-
-def _scalar(x, name: str):
-    """A scalar float parameter; Python numbers stay weakly typed."""
-    if isinstance(x, (int, float)) and not isinstance(x, bool):
-        return jnp.asarray(float(x))
-    a = as_float_array(x, name)
-    if a.shape != ():
-        raise ValueError(f"`{name}` must be a scalar (shape ()), got shape {tuple(a.shape)}")
-    return a
-
-
-def _require_positive(a, name: str) -> None:
-    """Raise a ValueError if a concrete scalar is not > 0 (traced values are checked later)."""
-    try:
-        v = np.asarray(a)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"`{name}` must be a finite positive number, got {v}")
-
-
-def _matrix4(m, name: str = "cam_to_world"):
-    m = as_float_array(m, name)
-    if m.shape != (4, 4):
-        raise ValueError(f"`{name}` must have shape (4, 4), got {tuple(m.shape)}")
-    return m
-
-
-def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
-
-
-# --------------------------------------------------------------------------- cameras
-
-
-class PinholeCamera(eqx.Module):
-    """A pinhole camera in the OpenCV convention (see the module docstring).
-
-    **Arguments / fields:**
-
-    - `fx`, `fy`: focal lengths in pixels (traced scalars, > 0).
-    - `cx`, `cy`: principal point in pixels (traced scalars); the image
-      centre is `(width/2, height/2)`.
-    - `width`, `height`: image size in pixels (static ints).
-    - `cam_to_world`: `(4, 4)` camera-to-world matrix (traced); its upper
-      3×3 block should be a rotation (see `look_at`).
-
-    All arrays are converted to one float dtype (the widest given). A
-    non-positive focal length raises `ValueError` at construction (or, when
-    the camera is built from traced values, an error at run time of
-    `camera_rays`).
-    """
-
-    fx: Float[Array, ""]
-    fy: Float[Array, ""]
-    cx: Float[Array, ""]
-    cy: Float[Array, ""]
-    width: int = eqx.field(static=True)
-    height: int = eqx.field(static=True)
-    cam_to_world: Float[Array, "4 4"]
-    model: ClassVar[str] = "pinhole"
-
-    def __init__(self, fx, fy, cx, cy, width, height, cam_to_world):
-        self.width = check_positive_int(width, "width")
-        self.height = check_positive_int(height, "height")
-        m = _matrix4(cam_to_world)
-        params = [_scalar(fx, "fx"), _scalar(fy, "fy"), _scalar(cx, "cx"), _scalar(cy, "cy")]
-        _require_positive(params[0], "fx")
-        _require_positive(params[1], "fy")
-        dt = _widest([m] + params)
-        self.fx, self.fy, self.cx, self.cy = (p.astype(dt) for p in params)
-        self.cam_to_world = m.astype(dt)
-
-
-class OrthographicCamera(eqx.Module):
-    """An orthographic camera in the OpenCV convention (see the module docstring).
-
-    **Arguments / fields:**
-
-    - `scale`: world units per pixel (traced scalar, > 0).
-    - `width`, `height`: image size in pixels (static ints).
-    - `cam_to_world`: `(4, 4)` camera-to-world matrix (traced).
-
-    Pixel $(i, j)$ looks along the camera +z axis from the camera-frame
-    point $((j + \\tfrac12 - W/2)\\,s, (i + \\tfrac12 - H/2)\\,s, 0)$.
-    """
-
-    scale: Float[Array, ""]
-    width: int = eqx.field(static=True)
-    height: int = eqx.field(static=True)
-    cam_to_world: Float[Array, "4 4"]
-    model: ClassVar[str] = "orthographic"
-
-    def __init__(self, scale, width, height, cam_to_world):
-        self.width = check_positive_int(width, "width")
-        self.height = check_positive_int(height, "height")
-        m = _matrix4(cam_to_world)
-        s = _scalar(scale, "scale")
-        _require_positive(s, "scale")
-        dt = _widest([m, s])
-        self.scale = s.astype(dt)
-        self.cam_to_world = m.astype(dt)
-
-
-Camera = PinholeCamera | OrthographicCamera
-
-
-def _check_camera(camera):
-    if not isinstance(camera, (PinholeCamera, OrthographicCamera)):
-        raise ValueError(
-            f"`camera` must be a PinholeCamera or an OrthographicCamera, got {type(camera).__name__}"
-        )
-    return camera
-
-
-def camera_rays(camera: Camera) -> tuple[Float[Array, "H W 3"], Float[Array, "H W 3"]]:
-    """World-space rays through the pixel centres of a camera.
-
-    Pinhole: origin = camera centre $t$ (all pixels), direction
-    $R\\,((u - c_x)/f_x, (v - c_y)/f_y, 1)$ normalized, with
-    $(u, v) = (j + \\tfrac12, i + \\tfrac12)$ for pixel (row $i$, column $j$).
-    Orthographic: origin $R\\,((u - W/2)s, (v - H/2)s, 0) + t$, direction
-    the camera +z axis $R e_z$. ($R$, $t$ are the blocks of `cam_to_world`.)
-
-    Jitted; differentiable in the camera's array fields.
-
-    **Arguments:** `camera`: a `PinholeCamera` or `OrthographicCamera`.
-
-    **Returns:** `(origins, directions)`, each `(height, width, 3)`;
-    directions are unit vectors.
-    """
-    return _camera_rays(_check_camera(camera))
-
-
-@eqx.filter_jit
-def _camera_rays(camera):
-    h, w = camera.height, camera.width
-    m = camera.cam_to_world
-    dt = m.dtype
-    rot, t = m[:3, :3], m[:3, 3]
-    u = jnp.broadcast_to((jnp.arange(w, dtype=dt) + 0.5)[None, :], (h, w))
-    v = jnp.broadcast_to((jnp.arange(h, dtype=dt) + 0.5)[:, None], (h, w))
-    if isinstance(camera, PinholeCamera):
-        fx = eqx.error_if(camera.fx, ~(camera.fx > 0.0), "PinholeCamera: `fx` must be positive")
-        fy = eqx.error_if(camera.fy, ~(camera.fy > 0.0), "PinholeCamera: `fy` must be positive")
-        d_cam = jnp.stack([(u - camera.cx) / fx, (v - camera.cy) / fy, jnp.ones_like(u)], axis=-1)
-        d = jnp.einsum("ij,hwj->hwi", rot, d_cam)
-        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        o = jnp.broadcast_to(t[None, None, :], (h, w, 3))
-    else:
-        s = eqx.error_if(camera.scale, ~(camera.scale > 0.0), "OrthographicCamera: `scale` must be positive")
-        p_cam = jnp.stack([(u - 0.5 * w) * s, (v - 0.5 * h) * s, jnp.zeros_like(u)], axis=-1)
-        o = jnp.einsum("ij,hwj->hwi", rot, p_cam) + t[None, None, :]
-        axis = rot[:, 2] / jnp.linalg.norm(rot[:, 2])
-        d = jnp.broadcast_to(axis[None, None, :], (h, w, 3))
-    return o, d
-
-
-def look_at(
-    eye: Real[ArrayLike, "*#batch 3"] | SequenceLike,
-    target: Real[ArrayLike, "*#batch 3"] | SequenceLike,
-    up: Real[ArrayLike, "*#batch 3"] | SequenceLike = (0.0, 0.0, 1.0),
-) -> Float[Array, "*batch 4 4"]:
-    """A camera-to-world matrix looking from `eye` at `target` (OpenCV convention).
-
-    Camera axes in world coordinates: $z = (\\text{target} - \\text{eye})/\\|\\cdot\\|$
-    (forward), $x = z \\times \\text{up}$ normalized (right), $y = z \\times x$
-    (down, the component of $-\\text{up}$ orthogonal to $z$); the matrix is
-    $\\begin{pmatrix} x & y & z & \\text{eye} \\\\ 0 & 0 & 0 & 1\\end{pmatrix}$,
-    a proper rotation. So the target is imaged at the principal point and
-    `up` points up in the image. When `up` is parallel to the viewing
-    direction another world axis (the one least aligned with $z$) is used.
-
-    **Arguments:** `eye`, `target`, `up`: `(..., 3)` (broadcast; traced,
-    differentiable). `up` defaults to world +z.
-
-    **Returns:** `(..., 4, 4)`.
-    """
-    eye = as_float_array(eye, "eye")
-    target = as_float_array(target, "target")
-    up = as_float_array(up, "up")
-    batch = ()
-    for name, a in (("eye", eye), ("target", target), ("up", up)):
-        if a.ndim < 1 or a.shape[-1] != 3:
-            raise ValueError(f"`{name}` must have shape (..., 3), got {tuple(a.shape)}")
-        try:
-            batch = jnp.broadcast_shapes(batch, a.shape[:-1])
-        except ValueError:
-            raise ValueError(f"the batch shape of `{name}`, {a.shape[:-1]}, does not broadcast with {batch}") from None
-    dt = _widest([eye, target, up])
-    eye, target, up = (jnp.broadcast_to(a.astype(dt), batch + (3,)) for a in (eye, target, up))
-    try:
-        gap = np.linalg.norm(np.asarray(target) - np.asarray(eye), axis=-1)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        gap = None
-    if gap is not None and np.any(gap == 0.0):
-        raise ValueError("`look_at`: `eye` and `target` coincide, the viewing direction is undefined")
-    return _look_at(eye, target, up)
-
-
-@eqx.filter_jit
-def _look_at(eye, target, up):
-    z = target - eye
-    z = z / jnp.linalg.norm(z, axis=-1, keepdims=True)
-    x = jnp.cross(z, up)
-    nx = jnp.linalg.norm(x, axis=-1, keepdims=True)
-    nup = jnp.linalg.norm(up, axis=-1, keepdims=True)
-    degenerate = nx <= 1e-9 * nup
-    # fallback up: the world axis least aligned with z
-    k = jnp.argmin(jnp.abs(z), axis=-1)
-    alt = jax.nn.one_hot(k, 3, dtype=z.dtype)
-    x_alt = jnp.cross(z, alt)
-    x = jnp.where(degenerate, x_alt, x)
-    nx = jnp.linalg.norm(x, axis=-1, keepdims=True)
-    x = x / nx
-    y = jnp.cross(z, x)
-    rot = jnp.stack([x, y, z], axis=-1)
-    top = jnp.concatenate([rot, eye[..., :, None]], axis=-1)
-    bottom = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 0.0, 1.0], dtype=eye.dtype), eye.shape[:-1] + (1, 4))
-    return jnp.concatenate([top, bottom], axis=-2)
-
-
-# --------------------------------------------------------------------------- G-buffers
-
-
-class GBuffer(eqx.Module):
-    """Per-pixel geometry of a view (see the module docstring for conventions).
-
-    **Fields:**
-
-    - `mask`: `(H, W)` bool, the ray hit the object.
-    - `position`: `(H, W, 3)` world-space hit point (0 where `mask` is False).
-    - `normal`: `(H, W, 3)` unit surface normal (0 where `mask` is False).
-    - `view`: `(H, W, 3)` unit direction from the surface towards the camera
-      ($\\omega_o$; minus the ray direction, defined for every pixel).
-    - `depth`: `(H, W)` camera-frame $z$ of the hit point (0 where `mask` is
-      False).
-
-    `gb.position[gb.mask]` etc. give the `(N, 3)` samples of the object
-    (outside `jit`).
-    """
-
-    mask: Bool[Array, "H W"]
-    position: Float[Array, "H W 3"]
-    normal: Float[Array, "H W 3"]
-    view: Float[Array, "H W 3"]
-    depth: Float[Array, "H W"]
-
-
-def sphere_gbuffer(
-    camera: Camera, center: Real[ArrayLike, "3"] | SequenceLike, radius: Real[ArrayLike, ""]
-) -> GBuffer:
-    """Analytic G-buffer of a sphere: ray–sphere intersection for every pixel.
-
-    For a ray $o + t d$ ($|d| = 1$) and $f = o - c$: $b = f\\cdot d$, and the
-    discriminant is computed as $r^2 - |f - b\\,d|^2$ (the squared distance
-    from the centre to the ray, Haines et al. 2019 eq. 7.5; free of the
-    cancellation in $b^2 - (|f|^2 - r^2)$ for distant cameras). The roots are
-    $q = -b - \\mathrm{sign}(b)\\sqrt{\\Delta}$ and $(|f|^2 - r^2)/q$ (the
-    stable quadratic formula); the pixel keeps the nearest positive one. A
-    camera inside the sphere sees its inside (normals still point outwards).
-
-    Normal $(p - c)/r$, view $-d$, depth $(p - t_{cam})\\cdot z_{cam}$.
-    Jitted; differentiable with respect to `center`, `radius` and the
-    camera's array fields (the mask is piecewise constant; the square root is
-    guarded so that gradients stay finite at the silhouette).
-
-    **Arguments:**
-
-    - `camera`: `PinholeCamera` or `OrthographicCamera`.
-    - `center`: `(3,)`; `radius`: scalar > 0 (traced).
-
-    **Returns:** a `GBuffer` of `(height, width)` images.
-    """
-    camera = _check_camera(camera)
-    center = as_float_array(center, "center")
-    if center.shape != (3,):
-        raise ValueError(f"`center` must have shape (3,), got {tuple(center.shape)}")
-    radius = _scalar(radius, "radius")
-    _require_positive(radius, "radius")
-    dt = _widest([camera.cam_to_world, center, radius])
-    if dt != camera.cam_to_world.dtype:
-        camera = jax.tree_util.tree_map(lambda a: a.astype(dt), camera)
-    return _sphere_gbuffer(camera, center.astype(dt), radius.astype(dt))
-
-
-@eqx.filter_jit
-def _sphere_gbuffer(camera, center, radius):
-    radius = eqx.error_if(radius, ~(radius > 0.0), "sphere_gbuffer: `radius` must be positive")
-    o, d = _camera_rays(camera)
-    f = o - center[None, None, :]
-    b = _dot(f, d)
-    h = f - b[..., None] * d
-    r2 = radius * radius
-    disc = r2 - _dot(h, h)
-    c = _dot(f, f) - r2
-    hit = disc >= 0.0
-    sq = jnp.sqrt(jnp.where(hit, disc, 0.0))
-    sign = jnp.where(b >= 0.0, 1.0, -1.0).astype(b.dtype)
-    q = -b - sign * sq
-    q_ok = q != 0.0
-    q_safe = jnp.where(q_ok, q, 1.0)
-    t1 = q
-    t2 = jnp.where(q_ok, c / q_safe, 0.0)
-    t_near = jnp.minimum(t1, t2)
-    t_far = jnp.maximum(t1, t2)
-    t = jnp.where(t_near > 0.0, t_near, t_far)
-    mask = hit & (t > 0.0)
-    t = jnp.where(mask, t, 0.0)
-    p = o + t[..., None] * d
-    m3 = mask[..., None]
-    position = jnp.where(m3, p, 0.0)
-    normal = jnp.where(m3, (p - center[None, None, :]) / radius, 0.0)
-    eye = camera.cam_to_world[:3, 3]
-    zaxis = camera.cam_to_world[:3, 2]
-    zaxis = zaxis / jnp.linalg.norm(zaxis)
-    depth = jnp.where(mask, _dot(p - eye[None, None, :], zaxis[None, None, :]), 0.0)
-    return GBuffer(mask=mask, position=position, normal=normal, view=-d, depth=depth)
-
 
 # --------------------------------------------------------------------------- ray casting (NumPy / trimesh)
 
@@ -459,6 +100,8 @@ def _check_mesh(mesh):
         raise ValueError(f"`mesh` must be a trimesh.Trimesh, got {type(mesh).__name__}")
     if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise ValueError("`mesh` is empty (it has no faces)")
+    if not np.all(np.isfinite(np.asarray(mesh.vertices, dtype=np.float64))):
+        raise ValueError("`mesh` has non-finite vertices (NaN or inf in `mesh.vertices`)")
     return mesh
 
 
@@ -590,7 +233,7 @@ def mesh_gbuffer(camera: Camera, mesh, smooth: bool = True, engine: str = "auto"
     **Arguments:**
 
     - `camera`: `PinholeCamera` or `OrthographicCamera`.
-    - `mesh`: a non-empty `trimesh.Trimesh`.
+    - `mesh`: a non-empty `trimesh.Trimesh` with finite vertices (else `ValueError`).
     - `smooth`: interpolated vertex normals (True) or face normals (False).
     - `engine`: `"auto"`, `"embree"`, `"triangle"` or `"numpy"`.
 
@@ -841,42 +484,3 @@ def visibility_sh(
     t_local = (vis * (weights * local[:, 2])[None, :]) @ y_local
     out = rotate_sh(jnp.asarray(t_local), jnp.asarray(rot), channels=False)
     return jnp.asarray(out, dtype=dt)
-
-
-def visibility_weighted_irradiance(
-    transfer: Real[ArrayLike, "*batch n_T"], lighting_coeffs: Real[ArrayLike, "n_L *C"]
-) -> Float[Array, "..."]:
-    """Irradiance with visibility, $E(x) = \\sum_{lm} L_{lm} T_{lm}(x)$.
-
-    A contraction of transfer vectors (`visibility_sh`) with real SH lighting
-    coefficients, over the common band limit (the coefficient axis of the
-    longer one is truncated: the product integral of a band-limited transfer
-    and lighting involves only their common bands). Without occlusion and
-    with lmax = 2 it equals `irradiance(lighting_coeffs, normals)` (R&H
-    eq. 21). Jitted; differentiable (linear) in both arguments.
-
-    **Arguments:**
-
-    - `transfer`: `(..., n_coeffs_T)`.
-    - `lighting_coeffs`: `(n_coeffs_L,)` or `(n_coeffs_L, C)` (channels last).
-
-    **Returns:** `(...)` or `(..., C)`.
-    """
-    transfer = as_float_array(transfer, "transfer")
-    light = as_float_array(lighting_coeffs, "lighting_coeffs")
-    if transfer.ndim < 1:
-        raise ValueError("`transfer` must have shape (..., n_coeffs), got ()")
-    coeff_layout(transfer.shape[-1:], "transfer", channels=False)
-    if light.ndim not in (1, 2):
-        raise ValueError(
-            f"`lighting_coeffs` must have shape (n_coeffs,) or (n_coeffs, C), got {tuple(light.shape)}"
-        )
-    coeff_layout(light.shape, "lighting_coeffs", channels=light.ndim == 2)
-    dt = _widest([transfer, light])
-    return _contract(transfer.astype(dt), light.astype(dt))
-
-
-@eqx.filter_jit
-def _contract(transfer, light):
-    n = min(transfer.shape[-1], light.shape[0])
-    return jnp.tensordot(transfer[..., :n], light[:n], axes=([-1], [0]))

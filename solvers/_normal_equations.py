@@ -1,0 +1,250 @@
+"""The normal-equation engine: Gram blocks over pixel chunks, pseudo-inverses, small eliminations, covariances.
+
+Every linear (or linear-given-the-nonlinear-parameters) least-squares
+problem of the solvers goes through here:
+
+- `eq25_rows`, `accumulate_gram`: the design rows of R&H eq. 25 (diffuse
+  block $d$, 9 columns; specular block $s$, $(l^*+1)^2$ columns) and the sums
+  $\\sum_x w\\,d^Td$, $d^Ts$, $s^Ts$, $d^Tb$, $s^Tb$, $b^Tb$ accumulated over
+  pixel chunks by `lax.scan` (memory $O(n^2)$ whatever the pixel count), used
+  by `inverse_lighting` and by every evaluation of `factorize`.
+- `channel_system`, `eig_solve`: the per-channel normal equations
+  $A_c = K_{d,c}\\,d + K_{s,c}\\,s$ and their eigen-solve with singular values,
+  rank, standard errors and the null space flagged (`inverse_lighting`).
+- `pinv_psd`: the eigen pseudo-inverse of a PSD block (the $l > 2$ block
+  of the factorization's Schur complement).
+- `solve_spd_unrolled`, `inverse_spd_unrolled`: Gaussian elimination of
+  small SPD systems, unrolled in Python into plain XLA ops.
+- `solve_sym2`, `inverse_sym2_diag`, `solve_grouped_shared`: the $2\\times2$
+  $(K_d, K_s)$ eliminations of `fit_brdf` (per channel, per texel, and the
+  Schur complement of one shared $K_s$ with a $K_d$ per texel).
+- `covariance_from_jacobian`: $\\mathrm{cov} = s^2 (J^TJ)^{+}$,
+  $s^2 = \\mathrm{RSS}/(n - p)$, with undetermined directions flagged.
+
+**No LAPACK inside loops.** jaxlib runs Cholesky/LU/eigh as LAPACK custom
+calls; inside XLA:CPU loops (`lax.scan`, `while_loop`, the simplex) those
+stalled or deadlocked on re-execution on the development machine (measured),
+and OpenBLAS threads thrashed against XLA's (hence `blas_single_thread`
+around every solver). So the functions called inside searches
+(`solve_spd_unrolled`, `solve_sym2`, `solve_grouped_shared`) are plain
+elementwise/matmul arithmetic; the eigendecompositions (`eig_solve`,
+`pinv_psd`, `covariance_from_jacobian`) run once per solve, outside the
+iterative loops.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+import jaxsh
+
+# --------------------------------------------------------------------------- Gram blocks of eq. 25
+
+
+class Gram(eqx.Module):
+    """Sums over pixels of the two row blocks d (diffuse, 9 columns) and s (specular, n columns) of eq. 25."""
+
+    dd: jax.Array  # (9, 9)
+    ds: jax.Array  # (9, n)
+    ss: jax.Array  # (n, n)
+    db: jax.Array  # (9, C)
+    sb: jax.Array  # (n, C)
+    bb: jax.Array  # (C,)
+    count: jax.Array  # () pixels with positive weight
+
+
+def eq25_rows(n, v, transfer, rvis, mu, filt, lmax: int):
+    """Diffuse rows `(chunk, 9)` and specular rows `(chunk, n_coeffs)` of R&H eq. 25.
+
+    Diffuse: $\\Lambda_l\\hat\\rho_l Y_{lm}(n)$, $l \\le 2$ (eq. 21), or the
+    transfer vector $T_{lm}$ (sec. 6.4); specular: $F(\\mu,\\theta_o) Y_{lm}(R)$
+    times the reflected-ray visibility, times `filt` (the lobe filter, or None).
+    Pixels seen from behind ($n\\cdot v \\le 0$) get zero rows.
+    """
+    dt = n.dtype
+    l2 = min(lmax, 2)
+    if transfer is not None:
+        d = transfer[:, : (l2 + 1) ** 2]
+    else:
+        a = jaxsh.lambertian_spectrum(l2, dt)[jaxsh.sh_degrees(l2)]
+        d = jaxsh.real_sh(n, l2) * a[None, :]
+    d = jnp.pad(d, ((0, 0), (0, 9 - d.shape[1])))
+    cos_o = jnp.sum(n * v, -1)
+    vis = cos_o > 0
+    cos_o = jnp.where(vis, cos_o, 1.0)
+    f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
+    r = jaxsh.reflect(v, n)
+    y = jaxsh.real_sh(r, lmax)
+    if filt is not None:
+        y = y * filt[None, :]
+    scale = f if rvis is None else f * rvis
+    s = y * jnp.where(vis, scale, 0.0)[:, None]
+    d = jnp.where(vis[:, None], d, 0.0)
+    return d, s
+
+
+def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int) -> Gram:
+    """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding)."""
+    npx = n.shape[0]
+    pad = (-npx) % chunk
+    up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
+    n_p = jnp.concatenate([n, up]).reshape(-1, chunk, 3)
+    v_p = jnp.concatenate([v, up]).reshape(-1, chunk, 3)
+    b_p = jnp.pad(b, ((0, pad), (0, 0))).reshape(-1, chunk, b.shape[1])
+    w_p = jnp.pad(w, (0, pad)).reshape(-1, chunk)
+    t_p = None if transfer is None else jnp.pad(transfer, ((0, pad), (0, 0))).reshape(-1, chunk, transfer.shape[1])
+    r_p = None if rvis is None else jnp.pad(rvis, (0, pad)).reshape(-1, chunk)
+    nc = (lmax + 1) ** 2
+    c = b.shape[1]
+    dt = n.dtype
+    init = Gram(
+        jnp.zeros((9, 9), dt), jnp.zeros((9, nc), dt), jnp.zeros((nc, nc), dt), jnp.zeros((9, c), dt),
+        jnp.zeros((nc, c), dt), jnp.zeros((c,), dt), jnp.zeros((), dt),
+    )
+
+    def step(acc, xs):
+        nn, vv, bb, ww, tt, rr = xs
+        d, s = eq25_rows(nn, vv, tt, rr, mu, filt, lmax)
+        wd, ws = d * ww[:, None], s * ww[:, None]
+        return Gram(
+            acc.dd + wd.T @ d, acc.ds + wd.T @ s, acc.ss + ws.T @ s, acc.db + wd.T @ bb, acc.sb + ws.T @ bb,
+            acc.bb + jnp.sum(ww[:, None] * bb * bb, 0), acc.count + jnp.sum((ww > 0).astype(dt)),
+        ), None
+
+    out, _ = jax.lax.scan(step, init, (n_p, v_p, b_p, w_p, t_p, r_p))
+    return out
+
+
+def channel_system(g: Gram, kd, ks):
+    """Per-channel normal matrix and right-hand side for $A_c = K_{d,c} d + K_{s,c} s$: `(C, n, n)`, `(C, n)`."""
+    nc = g.ss.shape[0]
+    k = min(9, nc)
+    dd = jnp.zeros((nc, nc), g.ss.dtype).at[:k, :k].set(g.dd[:k, :k])
+    ds = jnp.zeros((nc, nc), g.ss.dtype).at[:k, :].set(g.ds[:k, :])
+    db = jnp.zeros((nc, g.db.shape[1]), g.ss.dtype).at[:k].set(g.db[:k])
+    ata = (kd**2)[:, None, None] * dd[None] + (kd * ks)[:, None, None] * (ds + ds.T)[None] + (ks**2)[:, None, None] * g.ss[None]
+    atb = (kd[None, :] * db + ks[None, :] * g.sb).T  # (C, n)
+    return ata, atb
+
+
+# --------------------------------------------------------------------------- eigen solves (outside loops)
+
+
+def eig_solve(ata, atb, bb, count, rcond, ridge):
+    """Eigen-solve batched normal equations $A^TA x = A^Tb$ (minimum norm, eigenvalues below `rcond`·max dropped).
+
+    Returns `x` `(C, n)`, standard errors `se` `(C, n)` ($s^2 = \\mathrm{RSS}/(n_{obs} - \\mathrm{rank})$;
+    `inf` where a coefficient has weight in the null space), `determined` `(C, n)`, the singular values of
+    $A$ `(C, n)` descending, `rss` `(C,)` ($b^Tb - 2x^TA^Tb + x^TA^TAx$, exact for any $x$) and `rank` `(C,)`.
+    """
+    evals, evecs = jnp.linalg.eigh(ata)  # ascending
+    top = evals[:, -1:]
+    keep = evals > rcond * top
+    inv = jnp.where(keep, 1.0 / (jnp.where(keep, evals, 1.0) + ridge), 0.0)
+    proj = jnp.einsum("cji,cj->ci", evecs, atb)
+    x = jnp.einsum("cij,cj->ci", evecs, inv * proj)
+    rss = bb - 2 * jnp.sum(x * atb, -1) + jnp.einsum("ci,cij,cj->c", x, ata, x)
+    rss = jnp.maximum(rss, 0.0)
+    n_free = jnp.sum(keep, -1).astype(rss.dtype)
+    s2 = rss / jnp.maximum(count - n_free, 1.0)
+    var = jnp.einsum("cij,cj->ci", evecs**2, inv**2 * jnp.where(keep, evals, 0.0))
+    null_weight = jnp.einsum("cij,cj->ci", evecs**2, (~keep).astype(evecs.dtype))
+    determined = null_weight < 1e-6
+    se = jnp.where(determined, jnp.sqrt(s2[:, None] * var), jnp.inf)
+    sv = jnp.sqrt(jnp.clip(evals[:, ::-1], 0.0))
+    return x, se, determined, sv, rss, jnp.sum(keep, -1)
+
+
+def pinv_psd(a, rcond):
+    """Pseudo-inverse of a symmetric PSD matrix by eigendecomposition (eigenvalues < `rcond`·max dropped)."""
+    evals, evecs = jnp.linalg.eigh(a)
+    keep = evals > rcond * jnp.max(evals)
+    inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
+    return (evecs * inv[..., None, :]) @ jnp.swapaxes(evecs, -1, -2)
+
+
+def covariance_from_jacobian(J, rss, nobs, n_par):
+    """$\\mathrm{cov} = s^2 (J^TJ)^{+}$, $s^2 = \\mathrm{RSS}/\\max(n - p, 1)$, and the standard errors.
+
+    Eigenvalues of $J^TJ$ below $\\epsilon\\,p\\,\\lambda_{max}$ are dropped; a
+    parameter with weight in those directions is undetermined and gets an
+    infinite standard error. Returns `(cov, se)`.
+    """
+    dt = J.dtype
+    jtj = J.T @ J
+    s2 = rss / jnp.maximum(nobs - n_par, 1.0)
+    evals, evecs = jnp.linalg.eigh(jtj)
+    tiny = evals <= jnp.finfo(dt).eps * jnp.max(evals) * jtj.shape[0]
+    inv = jnp.where(tiny, 0.0, 1.0 / jnp.where(tiny, 1.0, evals))
+    cov = (evecs * inv[None, :]) @ evecs.T * s2
+    undetermined = (jnp.abs(evecs) * tiny.astype(dt)[None, :]).max(axis=1) > 1e-6
+    se = jnp.where(undetermined, jnp.inf, jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)))
+    return cov, se
+
+
+# --------------------------------------------------------------------------- small eliminations (loop-safe)
+
+
+def solve_spd_unrolled(m, r):
+    """Solve SPD systems $m x = r$, batched over leading axes, by Gaussian elimination unrolled in Python.
+
+    For the 9×9 / 10×10 Schur complements inside the searches: plain XLA ops, no LAPACK
+    custom call (module docstring). A relative jitter of $16\\epsilon$ on the diagonal keeps
+    exactly singular systems finite."""
+    k = m.shape[-1]
+    scale = jnp.maximum(jnp.max(jnp.abs(jnp.diagonal(m, axis1=-2, axis2=-1)), -1), jnp.finfo(m.dtype).tiny)
+    m = m + (jnp.finfo(m.dtype).eps * 16) * scale[..., None, None] * jnp.eye(k, dtype=m.dtype).reshape((1,) * (m.ndim - 2) + (k, k))
+    a = jnp.concatenate([m, r[..., None]], -1)
+    for i in range(k):
+        piv = a[..., i, i]
+        piv = jnp.where(jnp.abs(piv) > 0, piv, jnp.finfo(m.dtype).tiny)
+        row = a[..., i, :] / piv[..., None]
+        a = a - a[..., :, i : i + 1] * row[..., None, :]
+        a = a.at[..., i, :].set(row)
+    return a[..., :, -1]
+
+
+def inverse_spd_unrolled(m):
+    """Inverse of one small SPD matrix `(k, k)` by `solve_spd_unrolled` on the columns of the identity."""
+    eye = jnp.eye(m.shape[-1], dtype=m.dtype)
+    return jax.vmap(lambda e: solve_spd_unrolled(m, e))(eye)
+
+
+def solve_sym2(a11, a12, a22, r1, r2):
+    """Solve $[[a_{11}, a_{12}], [a_{12}, a_{22}]]\\,x = r$ elementwise (Cramer); returns `x1, x2, bad`.
+
+    `bad` flags near-singular systems ($\\det \\le 10^3\\epsilon\\,a_{11}a_{22}$ or a
+    non-positive diagonal), whose solution is returned as 0."""
+    det = a11 * a22 - a12 * a12
+    eps = jnp.finfo(det.dtype).eps
+    bad = ~(det > 1e3 * eps * a11 * a22) | ~(a11 > 0) | ~(a22 > 0)
+    det_s = jnp.where(bad, 1.0, det)
+    x1 = (a22 * r1 - a12 * r2) / det_s
+    x2 = (a11 * r2 - a12 * r1) / det_s
+    return jnp.where(bad, 0.0, x1), jnp.where(bad, 0.0, x2), bad
+
+
+def inverse_sym2_diag(a11, a12, a22):
+    """Diagonal of $[[a_{11}, a_{12}], [a_{12}, a_{22}]]^{-1}$ elementwise: `(a22/det, a11/det, det > 0)`."""
+    det = a11 * a22 - a12 * a12
+    ok = det > 0
+    det_s = jnp.where(ok, det, 1.0)
+    return a22 / det_s, a11 / det_s, ok
+
+
+def solve_grouped_shared(dd, ds, ss, db, sb):
+    """One unknown per group $t$ ($x_t$) and one shared ($y$), per channel, by the Schur complement.
+
+    Normal equations $dd_t x_t + ds_t y = db_t$, $\\sum_t ds_t x_t + (\\sum_t ss_t) y = \\sum_t sb_t$
+    with inputs `(T, C)`: $y = (\\sum sb - \\sum ds\\,db/dd)/(\\sum ss - \\sum ds^2/dd)$, then
+    $x_t = (db_t - ds_t y)/dd_t$ (0 for a group with $dd_t = 0$). Returns `x (T, C)`, `y (C,)`, `bad (C,)`
+    (a vanishing Schur complement)."""
+    dd_s = jnp.where(dd > 0, dd, 1.0)
+    num = jnp.sum(sb, 0) - jnp.sum(jnp.where(dd > 0, ds * db / dd_s, 0.0), 0)
+    den = jnp.sum(ss, 0) - jnp.sum(jnp.where(dd > 0, ds * ds / dd_s, 0.0), 0)
+    bad = ~(den > 1e3 * jnp.finfo(den.dtype).eps * jnp.sum(ss, 0))
+    y = jnp.where(bad, 0.0, num / jnp.where(bad, 1.0, den))
+    x = jnp.where(dd > 0, (db - y[None, :] * ds) / dd_s, 0.0)
+    return x, y, bad
