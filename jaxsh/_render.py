@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import as_float_array, check_dirs, check_positive_int
 from ._grids import latlong_directions, latlong_weights
@@ -86,8 +87,8 @@ def _batch(normals, views):
 def render_practical(
     normals: Real[ArrayLike, "*#batch 3"],
     views: Real[ArrayLike, "*#batch 3"],
-    brdf: TorranceSparrow | None = None,
-    lighting: Lighting | None = None,
+    brdf: TorranceSparrow | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
+    lighting: Lighting | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
     *legacy,
     transfer: Real[ArrayLike, "*#batch 9"] | None = None,
     fast_visibility: Real[ArrayLike, "*#batch J"] | None = None,
@@ -211,8 +212,8 @@ def _reference_lighting(lighting, light_kw) -> Lighting | None:
 def render_reference(
     normals: Real[ArrayLike, "*#batch 3"],
     views: Real[ArrayLike, "*#batch 3"],
-    brdf: TorranceSparrow | None = None,
-    lighting: Lighting | None = None,
+    brdf: TorranceSparrow | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
+    lighting: Lighting | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
     *legacy,
     envmap: Real[ArrayLike, "H W C"] | None = None,
     disk_nodes: tuple[int, int] = (48, 96),
