@@ -92,3 +92,31 @@ def test_value_errors_are_the_library_s():
     with pytest.raises(ValueError, match="dirs"):
         jaxsh.real_sh(np.zeros((4, 2)), 2)
     assert not jaxtyping.config.jaxtyping_disable
+
+
+def _model_instances():
+    dirs = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
+    yield jaxsh.Lighting(fast_directions=dirs, fast_energy=[[4.0, 4.0, 3.5], [1.0, 1.0, 1.0]])
+    yield jaxsh.Lighting(slow_sh=np.ones(9), fast_directions=np.array(dirs), fast_energy=[1.0, 2.0])
+    yield jaxsh.Lighting(slow_sh=np.ones((4, 3)))
+    yield jaxsh.Lighting(disk_directions=dirs, disk_radius=[0.1, 0.2], disk_radiance=[1.0, 2.0])
+    yield jaxsh.TorranceSparrow(0.5, 0.3, None, 0.1)
+    yield jaxsh.TorranceSparrow([0.5, 0.4, 0.3], 1, 1.5, 0.2)
+    yield jaxsh.TorranceSparrow(np.ones((5, 3)), np.ones((1, 3)), 1.5, np.float32(0.2))
+
+
+@pytest.mark.parametrize("model", list(_model_instances()), ids=lambda m: type(m).__name__)
+def test_model_fields_are_output_arrays(model):
+    # The fields of jaxsh.Lighting / jaxsh.TorranceSparrow are converted to JAX
+    # arrays (eqx.field converters), so their annotations are output types,
+    # true of whatever the README passes (lists, Python numbers, NumPy arrays).
+    # (Equinox gives a converted field's `__init__` parameter the type `Any`, so
+    # the hook does not check them: this test does.)
+    from beartype.door import is_bearable
+
+    hints = typing.get_type_hints(type(model), include_extras=True)
+    for name in ("kd", "ks", "mu", "sigma") if isinstance(model, jaxsh.TorranceSparrow) else (
+        "slow_sh", "fast_directions", "fast_energy", "disk_directions", "disk_radius", "disk_radiance"
+    ):
+        value = getattr(model, name)
+        assert is_bearable(value, hints[name]), (name, type(value), getattr(value, "shape", None), hints[name])
