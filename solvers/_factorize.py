@@ -138,7 +138,7 @@ class _Blocks(eqx.Module):
     """Normal-equation blocks of eq. 25 for one mu, split at the l <= 2 columns, with pinv(SS22)."""
 
     g: Gram
-    p22: Array  # (n-9, n-9)
+    p22: Array | None  # (n-9, n-9); None in the vmap axis spec (`_channel_blocks`)
 
 
 def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float) -> _Blocks:
