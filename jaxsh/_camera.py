@@ -28,7 +28,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array, check_positive_int, is_traced
 
@@ -263,9 +264,9 @@ def _camera_rays(camera):
 
 
 def look_at(
-    eye: Float[Array, "*batch 3"],
-    target: Float[Array, "*batch 3"],
-    up: Float[Array, "*batch 3"] = (0.0, 0.0, 1.0),
+    eye: Real[ArrayLike, "*#batch 3"] | SequenceLike,
+    target: Real[ArrayLike, "*#batch 3"] | SequenceLike,
+    up: Real[ArrayLike, "*#batch 3"] | SequenceLike = (0.0, 0.0, 1.0),
 ) -> Float[Array, "*batch 4 4"]:
     """A camera-to-world matrix looking from `eye` at `target` (OpenCV convention).
 

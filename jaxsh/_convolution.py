@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Inexact, Num, Real
 
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, coeff_layout
 from ._indexing import real_to_complex_matrix, sh_degrees
@@ -22,8 +22,8 @@ from ._spectra import lambertian_spectrum
 
 
 def convolve(
-    coeffs: Float[Array, "*batch n_coeffs *C"], A: Float[Array, "*batch L"], channels: bool | None = None
-) -> Float[Array, "*batch n_coeffs *C"]:
+    coeffs: Num[ArrayLike, "..."], A: Real[ArrayLike, "... L"], channels: bool | None = None
+) -> Inexact[Array, "..."]:
     """$B_{lm} = A_l L_{lm}$: filter an SH expansion by a radially symmetric kernel.
 
     R&H 2001 eqs. 15 and 17: reflection of lighting $L$ by a transfer function
@@ -61,7 +61,7 @@ def convolve(
     return c * gain
 
 
-def irradiance(coeffs: Float[Array, "n_coeffs *C"], normals: Float[Array, "*batch 3"]) -> Float[Array, "*batch *C"]:
+def irradiance(coeffs: Real[ArrayLike, "n_coeffs *C"], normals: Real[ArrayLike, "*batch 3"]) -> Float[Array, "..."]:
     """Irradiance $E(n) = \\sum_{l\\le 2} A_l \\sum_m L_{lm} Y_{lm}(n)$ (R&H 2001 eq. 21).
 
     $A_l$ are the Lambertian values π, 2π/3, π/4 (eq. 16). Only the first 9
@@ -100,7 +100,7 @@ def _irradiance(coeffs, normals, lmax):
     return e if coeffs.ndim == 2 else e[..., 0]
 
 
-def real_to_complex_coeffs(coeffs: Float[Array, "*batch n_coeffs *C"], channels: bool | None = None):
+def real_to_complex_coeffs(coeffs: Real[ArrayLike, "..."], channels: bool | None = None) -> Complex[Array, "..."]:
     """Complex SH coefficients $a = \\bar U c$ of a real expansion (same function).
 
     With `U = real_to_complex_matrix(lmax)`. For a real function
@@ -116,7 +116,7 @@ def real_to_complex_coeffs(coeffs: Float[Array, "*batch n_coeffs *C"], channels:
     return jnp.einsum("ij,...j->...i", ub, c)
 
 
-def complex_to_real_coeffs(coeffs: Complex[Array, "*batch n_coeffs *C"], channels: bool | None = None):
+def complex_to_real_coeffs(coeffs: Inexact[ArrayLike, "..."], channels: bool | None = None) -> Float[Array, "..."]:
     """Real SH coefficients $c = U^{\\mathsf T} a$ of a complex expansion (the real part of the function's coefficients).
 
     Exact inverse of `real_to_complex_coeffs` for coefficients of real functions.

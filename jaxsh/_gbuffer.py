@@ -42,7 +42,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import SequenceLike
 
 from ._camera import Camera, _camera_rays, _check_camera, _require_finite, _require_positive, _scalar, _widest
 from ._checks import as_float_array, coeff_layout, is_traced
@@ -86,7 +87,7 @@ class GBuffer(eqx.Module):
 
 
 def sphere_gbuffer(
-    camera: Camera, center: Float[Array, "3"], radius: Float[Array, ""]
+    camera: Camera, center: Real[ArrayLike, "3"] | SequenceLike, radius: Real[ArrayLike, ""]
 ) -> GBuffer:
     """Analytic G-buffer of a sphere: ray–sphere intersection for every pixel.
 
@@ -164,7 +165,7 @@ def _sphere_gbuffer(camera, center, radius):
 _NORMAL_TOL = 1e-3
 
 
-def normal_map_gbuffer(camera: Camera, normals: Float[Array, "H W 3"], mask: Bool[Array, "H W"] | None = None) -> GBuffer:
+def normal_map_gbuffer(camera: Camera, normals: Real[ArrayLike, "H W 3"], mask: Bool[ArrayLike, "H W"] | None = None) -> GBuffer:
     """G-buffer of a measured normal map: normals and view directions, no positions.
 
     For captures whose geometry is a normal map in the camera's pixel grid
@@ -254,7 +255,7 @@ def _normal_map_gbuffer(camera, n, mask):
 
 
 def visibility_weighted_irradiance(
-    transfer: Float[Array, "*batch n_coeffs"], lighting_coeffs: Float[Array, "n_coeffs *C"]
+    transfer: Real[ArrayLike, "*batch n_T"], lighting_coeffs: Real[ArrayLike, "n_L *C"]
 ) -> Float[Array, "*batch_channels"]:
     """Irradiance with visibility, $E(x) = \\sum_{lm} L_{lm} T_{lm}(x)$.
 

@@ -37,7 +37,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, lmax_from_size
 from ._indexing import sh_degrees, sh_lambda, sh_orders
@@ -106,7 +107,7 @@ def brdf_sh_coefficients(
 
 
 def brdf_incident_coefficients(
-    transfer: Callable, theta_o: Float[Array, ""], lmax: int, n_theta: int = 96, n_phi: int = 128, dtype=None
+    transfer: Callable, theta_o: Real[ArrayLike, ""], lmax: int, n_theta: int = 96, n_phi: int = 128, dtype=None
 ) -> Float[Array, " n_coeffs"]:
     """$\\hat\\rho_{lq}(\\omega_o') = \\int \\hat\\rho(\\omega_i', \\omega_o')\\,Y_{lq}(\\omega_i')\\,d\\omega_i'$ at a fixed view.
 
@@ -137,7 +138,7 @@ def brdf_incident_coefficients(
 
 
 def light_field_coefficients(
-    L: Complex[Array, " n_coeffs"], rho: Float[Array, "l p q"]
+    L: Complex[ArrayLike, " n_coeffs"], rho: Real[ArrayLike, "l p q"]
 ) -> Complex[Array, "n_coeffs p q2"]:
     """$B_{lmpq} = \\Lambda_l L_{lm}\\hat\\rho_{lpq}$ (R&H eq. 10).
 
@@ -163,7 +164,7 @@ def light_field_coefficients(
 
 
 def light_field_basis(
-    alpha: Float[Array, ""], beta: Float[Array, ""], wo_local: Float[Array, "3"], lmax: int
+    alpha: Real[ArrayLike, ""], beta: Real[ArrayLike, ""], wo_local: Real[ArrayLike, "3"] | SequenceLike, lmax: int
 ) -> Complex[Array, "n_coeffs p q2"]:
     """$C_{lmpq}(\\alpha, \\beta, \\omega_o') = \\Lambda_l^{-1} D^l_{mq}(\\alpha) e^{im\\beta} Y_{pq}(\\omega_o')$ (R&H eq. 9).
 
@@ -189,7 +190,7 @@ def light_field_basis(
     return (lam_inv * phase)[:, None, None] * dmq.astype(yo.dtype)[:, None, :] * ypq[None, :, :]
 
 
-def factorize_light_field(Bt: Complex[Array, "n_coeffs p q2"]):
+def factorize_light_field(Bt: Complex[ArrayLike, "n_coeffs p q2"]):
     """Lighting and BRDF from reciprocal light-field coefficients, up to scale (R&H sec. 5.1).
 
     With $\\tilde B_{lmpq} = \\Lambda_l L_{lm}\\tilde\\rho_{lpq}$ (eq. 13) and the
@@ -224,11 +225,11 @@ def factorize_light_field(Bt: Complex[Array, "n_coeffs p q2"]):
 
 
 def reflect_sh(
-    L: Complex[Array, " n_coeffs"],
-    rho_i: Float[Array, " n_coeffs"],
-    alpha: Float[Array, ""],
-    beta: Float[Array, ""],
-    phi_o: Float[Array, ""] = 0.0,
+    L: Complex[ArrayLike, " n_coeffs"],
+    rho_i: Real[ArrayLike, " n_coeffs"],
+    alpha: Real[ArrayLike, ""],
+    beta: Real[ArrayLike, ""],
+    phi_o: Real[ArrayLike, ""] = 0.0,
 ) -> Float[Array, ""]:
     r"""Reflected radiance from SH lighting and incident BRDF coefficients (R&H eqs. 5-10).
 

@@ -20,7 +20,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
+from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_values, coeff_layout
 from ._convolution import convolve
@@ -48,7 +49,7 @@ def _energy(energy, n_sources: int, name: str):
     return _non_negative(energy, name)
 
 
-def directional_light_sh(directions: Float[Array, "J 3"], energy: Float[Array, "J *C"], lmax: int) -> Float[Array, "n_coeffs C"]:
+def directional_light_sh(directions: Real[ArrayLike, "J 3"] | SequenceLike, energy: Real[ArrayLike, "J *C"] | SequenceLike, lmax: int) -> Float[Array, "n_coeffs C"]:
     """SH coefficients of delta sources: $L_{lm} = \\sum_j L_j Y_{lm}(\\omega_j)$ (R&H sec. 5.2).
 
     **Arguments:** `directions` `(J, 3)`, towards the lights (normalized
@@ -67,7 +68,7 @@ def directional_light_sh(directions: Float[Array, "J 3"], energy: Float[Array, "
 
 
 def disk_light_sh(
-    direction: Float[Array, "3"], angular_radius: Float[Array, ""], radiance: Float[Array, "*C"], lmax: int
+    direction: Real[ArrayLike, "3"] | SequenceLike, angular_radius: Real[ArrayLike, ""], radiance: Real[ArrayLike, "*C"] | ScalarLike | SequenceLike, lmax: int
 ) -> Float[Array, "n_coeffs *C"]:
     """SH coefficients of a uniform disk (spherical cap) source, in closed form.
 
@@ -128,7 +129,7 @@ def is_fast_source(angular_radius, sigma, ratio: float = 0.25):
     return as_float_array(angular_radius, "angular_radius") < ratio * as_float_array(sigma, "sigma")
 
 
-def filter_lighting_microfacet(coeffs: Float[Array, "n_coeffs *C"], sigma: Float[Array, ""]) -> Float[Array, "n_coeffs *C"]:
+def filter_lighting_microfacet(coeffs: Real[ArrayLike, "n_coeffs *C"], sigma: Real[ArrayLike, ""]) -> Float[Array, "n_coeffs *C"]:
     """$L^{slow}_{lm} = e^{-(\\sigma l)^2} L_{lm}$: the lighting a microfacet lobe sees (R&H eqs. 17, 20, 22).
 
     `coeffs` `(n_coeffs,)` or `(n_coeffs, C)`; `sigma` > 0 (σ ≤ 0 is an
@@ -143,9 +144,9 @@ def filter_lighting_microfacet(coeffs: Float[Array, "n_coeffs *C"], sigma: Float
 
 
 def split_disk_sources(
-    directions: Float[Array, "K 3"],
-    angular_radii: Float[Array, " K"],
-    radiance: Float[Array, "K C"],
+    directions: Real[ArrayLike, "K 3"] | SequenceLike,
+    angular_radii: Real[ArrayLike, " K"] | SequenceLike,
+    radiance: Real[ArrayLike, "K C"] | SequenceLike,
     sigma: float,
     lmax: int,
     ratio: float = 0.25,

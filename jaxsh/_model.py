@@ -296,8 +296,8 @@ class TorranceSparrow(eqx.Module):
     Positional order: `TorranceSparrow(kd, ks, mu, sigma)`.
     """
 
-    kd: Float[Array, "*T C"] = eqx.field(converter=_float)
-    ks: Float[Array, "*T C"] = eqx.field(converter=_float)
+    kd: Float[Array, "*T C"] | Float[Array, ""] = eqx.field(converter=_float)
+    ks: Float[Array, "*T C"] | Float[Array, ""] = eqx.field(converter=_float)
     mu: Float[Array, ""] | None = eqx.field(converter=_opt_float)
     sigma: Float[Array, ""] = eqx.field(converter=_float)
 

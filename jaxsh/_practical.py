@@ -29,7 +29,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import check_dirs, check_positive_int
 from ._indexing import sh_degrees
@@ -285,16 +286,16 @@ def _prepare_visibility(lighting: Lighting, batch, transfer, fast_visibility, re
 
 
 def practical_terms(
-    normals: Float[Array, "N 3"],
-    views: Float[Array, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
+    views: Real[ArrayLike, "N 3"],
     lighting: Lighting | None = None,
     *,
-    slow_sh: Float[Array, "n_coeffs C"] | None = None,
-    fast_directions: Float[Array, "J 3"] | None = None,
-    fast_energy: Float[Array, "J C"] | None = None,
-    transfer: Float[Array, "N 9"] | None = None,
-    fast_visibility: Float[Array, "N J"] | None = None,
-    reflected_visibility: Float[Array, " N"] | None = None,
+    slow_sh: Real[ArrayLike, "n_coeffs C"] | None = None,
+    fast_directions: Real[ArrayLike, "J 3"] | SequenceLike | None = None,
+    fast_energy: Real[ArrayLike, "J C"] | SequenceLike | None = None,
+    transfer: Real[ArrayLike, "N 9"] | None = None,
+    fast_visibility: Real[ArrayLike, "N J"] | None = None,
+    reflected_visibility: Real[ArrayLike, " N"] | None = None,
     exact_fast_diffuse: bool = True,
     chunk: int = 8192,
 ) -> PracticalTerms:

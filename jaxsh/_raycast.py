@@ -53,7 +53,7 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._camera import Camera, _camera_rays, _check_camera, _widest
 from ._checks import as_float_array, check_lmax, check_positive_int
@@ -317,9 +317,9 @@ def _visible_pairs(caster, origins, normals, dirs):
 
 def directional_visibility(
     mesh,
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    directions: Float[Array, "J 3"],
+    points: Real[ArrayLike, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
+    directions: Real[ArrayLike, "J 3"],
     eps: float | None = None,
     engine: str = "auto",
 ) -> Float[Array, "N J"]:
@@ -361,9 +361,9 @@ def directional_visibility(
 
 def reflected_visibility(
     mesh,
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    views: Float[Array, "N 3"],
+    points: Real[ArrayLike, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
+    views: Real[ArrayLike, "N 3"],
     eps: float | None = None,
     engine: str = "auto",
 ) -> Float[Array, " N"]:
@@ -425,8 +425,8 @@ def hemisphere_quadrature(n_dirs: int, lmax: int = 0) -> tuple[np.ndarray, np.nd
 
 def visibility_sh(
     mesh,
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
+    points: Real[ArrayLike, "N 3"],
+    normals: Real[ArrayLike, "N 3"],
     lmax: int,
     n_dirs: int = 1024,
     eps: float | None = None,

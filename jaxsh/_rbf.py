@@ -47,7 +47,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import SequenceLike
 
 from ._checks import as_float_array
 from ._reflectance import _frame, _prepare, _rusinkiewicz_local, _to_local, _uvw
@@ -76,7 +77,7 @@ def _safe_sqrt(x):
 
 
 def scaled_distances(
-    a: Float[Array, "Na d"], b: Float[Array, "Nb d"], scale: Float[Array, " d"] | None = None
+    a: Real[ArrayLike, "Na d"], b: Real[ArrayLike, "Nb d"], scale: Real[ArrayLike, " d"] | SequenceLike | None = None
 ) -> Float[Array, "Na Nb"]:
     """Anisotropic distances $\\|M(a_i - b_j)\\|$, $M = \\mathrm{diag}$(`scale`) (Zickler 2006 eq. 11).
 
@@ -242,7 +243,7 @@ class RBFModel(eqx.Module):
     def n_centers(self) -> int:
         return self.centers.shape[0]
 
-    def __call__(self, points: Float[Array, "*M d"]) -> Float[Array, "*M C"]:
+    def __call__(self, points: Real[ArrayLike, "*M d"]) -> Float[Array, "..."]:
         p = as_float_array(points, "points")
         d = self.dim
         single = p.ndim == 1
@@ -266,11 +267,11 @@ def _call(model, points):
 
 
 def rbf_evaluate(
-    centers: Float[Array, "K d"],
-    weights: Float[Array, "K *C"],
-    poly: Float[Array, "d1 *C"],
-    points: Float[Array, "M d"],
-    scale: Float[Array, " d"] | None = None,
+    centers: Real[ArrayLike, "K d"],
+    weights: Real[ArrayLike, "K *C"],
+    poly: Real[ArrayLike, "d1 *C"],
+    points: Real[ArrayLike, "M d"],
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
     chunk: int | None = None,
 ) -> Float[Array, "M *C"]:
     """Evaluate the RBF interpolant of Zickler 2006 eqs. 12–13 at `points` (chunked).
@@ -360,12 +361,12 @@ def _check_solve_inputs(centers, values, scale, smoothing):
 
 
 def rbf_solve(
-    centers: Float[Array, "K d"],
-    values: Float[Array, "K *C"],
-    scale: Float[Array, " d"] | None = None,
-    smoothing: float | Float[Array, ""] = 0.0,
-    active: Bool[Array, " K"] | None = None,
-    bounds: tuple[Float[Array, " d"], Float[Array, " d"]] | None = None,
+    centers: Real[ArrayLike, "K d"],
+    values: Real[ArrayLike, "K *C"],
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
+    smoothing: float | Real[ArrayLike, ""] = 0.0,
+    active: Bool[ArrayLike, " K"] | None = None,
+    bounds: tuple[Real[ArrayLike, " d"], Real[ArrayLike, " d"]] | None = None,
 ) -> tuple[Float[Array, "K *C"], Float[Array, "d1 *C"]]:
     """Kernel weights and polynomial of the RBF of Zickler 2006 eqs. 9–13 through given centres (eq. 10).
 
@@ -431,10 +432,10 @@ def rbf_solve(
 
 
 def rbf_fit(
-    centers: Float[Array, "K d"],
-    values: Float[Array, "K *C"],
-    scale: Float[Array, " d"] | None = None,
-    smoothing: float | Float[Array, ""] = 0.0,
+    centers: Real[ArrayLike, "K d"],
+    values: Real[ArrayLike, "K *C"],
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
+    smoothing: float | Real[ArrayLike, ""] = 0.0,
     chunk: int | None = None,
 ) -> RBFModel:
     """The RBF interpolant (or smoothing spline) of Zickler 2006 eqs. 9–13 with every sample a centre.
@@ -476,10 +477,10 @@ def rbf_fit(
 
 
 def sbrdf_points(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    xy: Float[Array, "*batch 2"] | None = None,
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    xy: Real[ArrayLike, "*#batch 2"] | None = None,
 ) -> Float[Array, "*batch D"]:
     """Domain points of (S)BRDF samples: $(u, v, w)$ (eq. 7) or $(x, y, u, v, w)$ (eq. 13).
 

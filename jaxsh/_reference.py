@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import check_dirs, check_positive_int
 from ._reflectance import tangent_frame
@@ -19,11 +19,11 @@ from ._reflectance import tangent_frame
 def reflect_quadrature(
     lighting: Callable,
     brdf: Callable,
-    normals: Float[Array, "*batch 3"],
-    views: Float[Array, "*batch 3"],
+    normals: Real[ArrayLike, "*#batch 3"],
+    views: Real[ArrayLike, "*#batch 3"],
     n_theta: int = 64,
     n_phi: int = 128,
-) -> Float[Array, "*batch *C"]:
+) -> Float[Array, "..."]:
     """$B(n, \\omega_o) = \\int_{\\Omega^+} L(\\omega_i)\\,\\rho(\\omega_i, \\omega_o, n)\\,(\\omega_i\\cdot n)\\,d\\omega_i$ by quadrature.
 
     The reflection equation (R&H 2001 eq. 2) over the hemisphere about each

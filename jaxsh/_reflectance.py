@@ -87,7 +87,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array, check_dirs
 
@@ -242,7 +242,7 @@ def _to_local(w, t, b, n):
 # --------------------------------------------------------------------------- geometry
 
 
-def reflect(v: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+def reflect(v: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch 3"]:
     """Mirror a direction about the normal: $R = 2(n\\cdot v)\\,n - v$.
 
     With `v` the view direction $\\omega_o$ this is the reflection vector
@@ -257,7 +257,7 @@ def reflect(v: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]) -> Float[A
     return _reflect_jit(v, n)
 
 
-def mirror_direction(wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+def mirror_direction(wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch 3"]:
     """The incident direction seen by a perfect mirror: `reflect(wo, n)`.
 
     The mirror BRDF is a delta, $\\rho = \\delta(\\omega_i - R(\\omega_o))/\\cos\\theta_i$
@@ -270,7 +270,7 @@ def mirror_direction(wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]) 
     return _reflect_jit(v, n)
 
 
-def half_vector(wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+def half_vector(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch 3"]:
     """The half-way vector $\\omega_h = (\\omega_i + \\omega_o)/\\|\\omega_i + \\omega_o\\|$.
 
     Undefined when $\\omega_i = -\\omega_o$; the zero vector is returned
@@ -338,7 +338,7 @@ def _half_angle(wi, wo, n):
     return _safe_sqrt(_theta_h_sq(*_half_angle_parts(wi + wo, n)))
 
 
-def half_angle(wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
+def half_angle(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch"]:
     """The half angle $\\theta_h = \\angle(\\omega_i + \\omega_o, n)$ of R&H eq. 23, gradient-safe.
 
     Computed as $\\sqrt{\\theta_h^2}$ with $\\theta_h^2$ from
@@ -360,7 +360,7 @@ def half_angle(wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Fl
 
 
 def tangent_frame(
-    n: Float[Array, "*batch 3"], t: Float[Array, "*batch 3"] | None = None
+    n: Real[ArrayLike, "*#batch 3"], t: Real[ArrayLike, "*#batch 3"] | None = None
 ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3"]]:
     """A right-handed orthonormal frame $(t, b, n)$ around a unit normal.
 
@@ -408,10 +408,10 @@ def _rusinkiewicz_local(wi, wo):
 
 
 def rusinkiewicz_angles(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    t: Float[Array, "*batch 3"] | None = None,
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    t: Real[ArrayLike, "*#batch 3"] | None = None,
 ) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"], Float[Array, "*batch"], Float[Array, "*batch"]]:
     """Half/difference angles $(\\theta_h, \\phi_h, \\theta_d, \\phi_d)$ (Rusinkiewicz 1998).
 
@@ -453,10 +453,10 @@ def _rusinkiewicz_angles(wi, wo, n, t):
 
 
 def rusinkiewicz_directions(
-    theta_h: Float[Array, "*batch"],
-    phi_h: Float[Array, "*batch"],
-    theta_d: Float[Array, "*batch"],
-    phi_d: Float[Array, "*batch"],
+    theta_h: Real[ArrayLike, "*#batch"],
+    phi_h: Real[ArrayLike, "*#batch"],
+    theta_d: Real[ArrayLike, "*#batch"],
+    phi_d: Real[ArrayLike, "*#batch"],
 ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3"]]:
     """Local-frame `(wi, wo)` from half/difference angles (inverse of `rusinkiewicz_angles`).
 
@@ -488,7 +488,7 @@ def _rusinkiewicz_directions(th, ph, td, pd):
 
 
 def uvw(
-    theta_h: Float[Array, "*batch"], phi_d: Float[Array, "*batch"], theta_d: Float[Array, "*batch"]
+    theta_h: Real[ArrayLike, "*#batch"], phi_d: Real[ArrayLike, "*#batch"], theta_d: Real[ArrayLike, "*#batch"]
 ) -> Float[Array, "*batch 3"]:
     """Zickler et al. 2006, eq. 7: the $(u, v, w)$ parameterization of isotropic BRDFs.
 
@@ -521,7 +521,7 @@ _uvw_jit = eqx.filter_jit(_uvw)
 
 
 def uvw_from_directions(
-    wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"]
+    wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]
 ) -> Float[Array, "*batch 3"]:
     """Zickler 2006 eq. 7 evaluated at directions: `uvw(θh, φd, θd)` of `rusinkiewicz_angles`.
 
@@ -544,7 +544,7 @@ def _uvw_from_directions(wi, wo, n):
 
 
 def local_directions(
-    theta_i: Float[Array, "*batch"], theta_o: Float[Array, "*batch"], delta_phi: Float[Array, "*batch"]
+    theta_i: Real[ArrayLike, "*#batch"], theta_o: Real[ArrayLike, "*#batch"], delta_phi: Real[ArrayLike, "*#batch"]
 ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3"]]:
     """Light and view directions from angles, in the frame with normal $n = +z$.
 
@@ -615,7 +615,7 @@ _fresnel_jit = eqx.filter_jit(_fresnel)
 _fresnel_normalized_jit = eqx.filter_jit(_fresnel_normalized)
 
 
-def fresnel_dielectric(cos_theta: Float[Array, "*batch"], mu: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+def fresnel_dielectric(cos_theta: Real[ArrayLike, "*#batch"], mu: Real[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     """Unpolarized Fresnel reflectance of a dielectric interface, exact.
 
     $F = \\tfrac12(r_s^2 + r_p^2)$ with, for relative index $\\mu$ and
@@ -642,7 +642,7 @@ def fresnel_dielectric(cos_theta: Float[Array, "*batch"], mu: Float[Array, "*bat
     return _fresnel_jit(c, _positive(mu, "mu"))
 
 
-def fresnel_normalized(cos_theta: Float[Array, "*batch"], mu: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+def fresnel_normalized(cos_theta: Real[ArrayLike, "*#batch"], mu: Real[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     """The Fresnel term of R&H 2001 sec. 5.2: $F(\\mu, \\theta)/F(\\mu, 0)$, 1 at normal incidence.
 
     Computed without the cancellation of the ratio of two small numbers,
@@ -686,7 +686,7 @@ def _tan2_theta_h(h, n):
 
 
 def lambertian(
-    wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"], kd: Float[Array, "*batch"]
+    wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"], kd: Real[ArrayLike, "*#batch"]
 ) -> Float[Array, "*batch"]:
     """Lambertian BRDF in the convention of R&H 2001: $\\rho = K_d$ (no $1/\\pi$).
 
@@ -710,7 +710,7 @@ def _lambertian(wi, wo, n, kd):
 
 
 def phong_transfer(
-    wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"], s: Float[Array, "*batch"]
+    wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"], s: Real[ArrayLike, "*#batch"]
 ) -> Float[Array, "*batch"]:
     """Normalized Phong transfer function (R&H 2001 sec. 5.2; thesis eq. 3.34).
 
@@ -731,7 +731,7 @@ def phong_transfer(
 
 
 def phong(
-    wi: Float[Array, "*batch 3"], wo: Float[Array, "*batch 3"], n: Float[Array, "*batch 3"], s: Float[Array, "*batch"]
+    wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"], s: Real[ArrayLike, "*#batch"]
 ) -> Float[Array, "*batch"]:
     """Normalized Phong BRDF: $\\rho = \\hat\\rho/\\cos\\theta_i$ with $\\hat\\rho$ of `phong_transfer`.
 
@@ -764,13 +764,13 @@ def _phong(wi, wo, n, s, divide):
 
 
 def torrance_sparrow(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    kd: Float[Array, "*batch"],
-    ks: Float[Array, "*batch"],
-    mu: Float[Array, "*batch"] | None,
-    sigma: Float[Array, "*batch"],
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    kd: Real[ArrayLike, "*#batch"],
+    ks: Real[ArrayLike, "*#batch"],
+    mu: Real[ArrayLike, "*#batch"] | None,
+    sigma: Real[ArrayLike, "*#batch"],
 ) -> Float[Array, "*batch"]:
     """The simplified Torrance–Sparrow model of R&H 2001 sec. 5.2 (docs/conventions.md, "BRDFs").
 
@@ -818,13 +818,13 @@ def _torrance_sparrow(wi, wo, n, kd, ks, mu, sigma):
 
 
 def cook_torrance(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    kd: Float[Array, "*batch"],
-    ks: Float[Array, "*batch"],
-    m: Float[Array, "*batch"],
-    mu: Float[Array, "*batch"],
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    kd: Real[ArrayLike, "*#batch"],
+    ks: Real[ArrayLike, "*#batch"],
+    m: Real[ArrayLike, "*#batch"],
+    mu: Real[ArrayLike, "*#batch"],
 ) -> Float[Array, "*batch"]:
     """Cook–Torrance microfacet BRDF with Beckmann $D$, V-cavity $G$ and exact Fresnel.
 
@@ -873,12 +873,12 @@ def _cook_torrance(wi, wo, n, kd, ks, m, mu):
 
 
 def ward_isotropic(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    rho_d: Float[Array, "*batch"],
-    rho_s: Float[Array, "*batch"],
-    alpha: Float[Array, "*batch"],
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    rho_d: Real[ArrayLike, "*#batch"],
+    rho_s: Real[ArrayLike, "*#batch"],
+    alpha: Real[ArrayLike, "*#batch"],
 ) -> Float[Array, "*batch"]:
     """Ward's isotropic Gaussian BRDF (Ward 1992; used by Zickler 2006 fig. 8).
 
@@ -909,11 +909,11 @@ def _ward(wi, wo, n, rd, rs, al):
 
 
 def oren_nayar(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    albedo: Float[Array, "*batch"],
-    sigma: Float[Array, "*batch"],
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    albedo: Real[ArrayLike, "*#batch"],
+    sigma: Real[ArrayLike, "*#batch"],
 ) -> Float[Array, "*batch"]:
     """The qualitative Oren–Nayar model of rough diffuse surfaces (Oren & Nayar 1994).
 
@@ -953,11 +953,11 @@ def _oren_nayar(wi, wo, n, a, sg):
 
 
 def lafortune(
-    wi: Float[Array, "*batch 3"],
-    wo: Float[Array, "*batch 3"],
-    n: Float[Array, "*batch 3"],
-    kd: Float[Array, "*batch"],
-    lobes: Float[Array, "*batch K 3"],
+    wi: Real[ArrayLike, "*#batch 3"],
+    wo: Real[ArrayLike, "*#batch 3"],
+    n: Real[ArrayLike, "*#batch 3"],
+    kd: Real[ArrayLike, "*#batch"],
+    lobes: Real[ArrayLike, "*#batch K 3"],
 ) -> Float[Array, "*batch"]:
     """Isotropic Lafortune generalized-cosine-lobe BRDF (Lafortune et al. 1997).
 

@@ -33,7 +33,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import as_float_array, check_dirs, check_positive_int
 from ._grids import latlong_directions, latlong_weights
@@ -147,16 +148,16 @@ def _batch(normals, views):
 
 
 def render_practical(
-    normals: Float[Array, "*batch 3"],
-    views: Float[Array, "*batch 3"],
-    brdf: TorranceSparrow | None = None,
-    lighting: Lighting | None = None,
+    normals: Real[ArrayLike, "*#batch 3"],
+    views: Real[ArrayLike, "*#batch 3"],
+    brdf: TorranceSparrow | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
+    lighting: Lighting | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
     *legacy,
-    transfer: Float[Array, "*batch 9"] | None = None,
-    fast_visibility: Float[Array, "*batch J"] | None = None,
-    reflected_visibility: Float[Array, "*batch"] | None = None,
+    transfer: Real[ArrayLike, "*#batch 9"] | None = None,
+    fast_visibility: Real[ArrayLike, "*#batch J"] | None = None,
+    reflected_visibility: Real[ArrayLike, "*#batch"] | None = None,
     exact_fast_diffuse: bool = True,
-    mask: Float[Array, "*batch"] | None = None,
+    mask: Bool[ArrayLike, "*#batch"] | None = None,
     **legacy_kw,
 ) -> Components:
     """The practical model of R&H 2001 eq. 24 per pixel (module docstring).
@@ -278,15 +279,15 @@ def _reference_lighting(lighting, light_kw) -> Lighting | None:
 
 
 def render_reference(
-    normals: Float[Array, "*batch 3"],
-    views: Float[Array, "*batch 3"],
-    brdf: TorranceSparrow | None = None,
-    lighting: Lighting | None = None,
+    normals: Real[ArrayLike, "*#batch 3"],
+    views: Real[ArrayLike, "*#batch 3"],
+    brdf: TorranceSparrow | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
+    lighting: Lighting | Real[ArrayLike, "*#batch C"] | ScalarLike | SequenceLike | None = None,
     *legacy,
-    envmap: Float[Array, "H W C"] | None = None,
+    envmap: Real[ArrayLike, "H W C"] | None = None,
     disk_nodes: tuple[int, int] = (48, 96),
     mesh=None,
-    points: Float[Array, "*batch 3"] | None = None,
+    points: Real[ArrayLike, "*#batch 3"] | None = None,
     chunk: int = 4096,
     **legacy_kw,
 ) -> Float[Array, "*batch C"]:

@@ -33,7 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
 from ._checks import as_float_array, check_lmax, coeff_layout
 from ._indexing import real_to_complex_matrix
@@ -163,7 +163,7 @@ def _complex_blocks(blocks):
 
 
 def wigner_D(
-    R: Float[Array, "*batch 3 3"], lmax: int, real: bool = True
+    R: Real[ArrayLike, "*batch 3 3"], lmax: int, real: bool = True
 ) -> Float[Array, "*batch n_coeffs n_coeffs"] | Complex[Array, "*batch n_coeffs n_coeffs"]:
     """Block-diagonal Wigner D matrix of a rotation, in the real or complex SH basis.
 
@@ -203,7 +203,7 @@ def _wigner_D(R, lmax, real):
     return _block_diag(cb, cb[0].dtype)
 
 
-def wigner_D_blocks(R: Float[Array, "*batch 3 3"], lmax: int, real: bool = True) -> list:
+def wigner_D_blocks(R: Real[ArrayLike, "*batch 3 3"], lmax: int, real: bool = True) -> list:
     """The diagonal blocks $D^l(R)$ of `wigner_D`, as a list of `(..., 2l+1, 2l+1)` arrays."""
     R = _check_rotation(R)
     lmax = check_lmax(lmax)
@@ -212,8 +212,8 @@ def wigner_D_blocks(R: Float[Array, "*batch 3 3"], lmax: int, real: bool = True)
 
 
 def rotate_sh(
-    coeffs: Float[Array, "*batch n_coeffs *C"], R: Float[Array, "*batch 3 3"], channels: bool | None = None
-) -> Float[Array, "*batch n_coeffs *C"]:
+    coeffs: Real[ArrayLike, "..."], R: Real[ArrayLike, "... 3 3"], channels: bool | None = None
+) -> Float[Array, "..."]:
     """Rotate a real SH expansion: the coefficients of $f(R^{\\mathsf T}\\omega)$.
 
     Equal to `wigner_D(R, lmax) @ coeffs`, applied block by block (the dense
@@ -287,7 +287,7 @@ def _ry(a):
     return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
 
 
-def wigner_d_y(beta: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch n_coeffs n_coeffs"]:
+def wigner_d_y(beta: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch n_coeffs n_coeffs"]:
     """Wigner small-d: the complex-basis D matrix of a rotation by β about +y.
 
     Block-diagonal, real; block $l$ is $d^l_{mm'}(\\beta)$, the

@@ -28,7 +28,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
 from ._checks import check_dirs, check_lmax, check_nonzero_dirs
 from ._indexing import sh_degrees, sh_orders
@@ -350,7 +350,7 @@ def _real_sh_flat(unit, lmax: int):
     return _basis_scan(x, y, z, lmax).T
 
 
-def real_sh(dirs: Float[Array, "*batch 3"], lmax: int) -> Float[Array, "*batch n_coeffs"]:
+def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batch n_coeffs"]:
     """Real orthonormal spherical harmonics $Y_{lm}(\\omega)$ for $l \\le l_{max}$.
 
     Convention (docs/conventions.md): orthonormal on the sphere, no sign flips,
@@ -423,7 +423,7 @@ def _complex_from_real(yr, lmax: int):
     return jax.lax.complex(re * sign_re, im * sign_im)
 
 
-def complex_sh(dirs: Float[Array, "*batch 3"], lmax: int) -> Complex[Array, "*batch n_coeffs"]:
+def complex_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Complex[Array, "*batch n_coeffs"]:
     """Complex orthonormal spherical harmonics $Y_l^m(\\omega)$.
 
     $Y_l^m = N_{lm} P_l^m(\\cos\\theta) e^{im\\phi}$ with the Condon-Shortley

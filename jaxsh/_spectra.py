@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, check_values
 
@@ -32,7 +32,7 @@ def _check_sigma(sigma, name: str = "sigma"):
     return check_values(sigma, lambda a: (a <= 0) | (a == jnp.inf), name, "in (0, inf) (a lobe width)")
 
 
-def lambertian_spectrum(lmax: int, dtype=None) -> Float[Array, " lmax+1"]:
+def lambertian_spectrum(lmax: int, dtype=None) -> Float[Array, " {lmax}+1"]:
     """$A_l$ of the clamped cosine $\\max(\\cos\\theta, 0)$ (thesis eq. 3.32; R&H eq. 16).
 
     $A_0 = \\pi$, $A_1 = 2\\pi/3$, $A_l = 0$ for odd $l > 1$, and for even $l$
@@ -66,7 +66,7 @@ def _rgamma_log_sign(a):
     return logv, sign.astype(a.dtype)
 
 
-def phong_spectrum(s: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def phong_spectrum(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch {lmax}+1"]:
     """Exact $A_l = \\Lambda_l\\hat\\rho_l$ of the normalized Phong lobe, any real $s > -1$.
 
     $A_l = (s+1)\\int_0^1 u^s P_l(u)\\,du$ (R&H eq. 18, thesis eq. 3.36), in the
@@ -100,7 +100,7 @@ def _phong_spectrum(s, lmax):
     return sign * jnp.exp(logc + logr - gammaln((sb + l + 3) / 2))
 
 
-def phong_spectrum_gaussian(s: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def phong_spectrum_gaussian(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch {lmax}+1"]:
     """Gaussian approximation $A_l \\approx \\exp(-l^2/2s)$ (R&H eq. 19, thesis eq. 3.40).
 
     Good for large $s$ and $l \\ll s$; use `phong_spectrum` for exact values.
@@ -114,7 +114,7 @@ def phong_spectrum_gaussian(s: Float[Array, "*batch"], lmax: int) -> Float[Array
     return jnp.exp(-(l * l) / (2 * s[..., None]))
 
 
-def microfacet_spectrum(sigma: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def microfacet_spectrum(sigma: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch {lmax}+1"]:
     """$A_l \\approx \\exp(-(\\sigma l)^2)$ of the Torrance-Sparrow lobe at normal exitance (R&H eq. 20).
 
     Multiply by $F(\\mu,\\theta_o)$ for other exitant angles (R&H sec. 5.2); the
@@ -133,13 +133,13 @@ def microfacet_spectrum(sigma: Float[Array, "*batch"], lmax: int) -> Float[Array
     return jnp.exp(-((sigma[..., None] * l) ** 2))
 
 
-def mirror_spectrum(lmax: int, dtype=None) -> Float[Array, " lmax+1"]:
+def mirror_spectrum(lmax: int, dtype=None) -> Float[Array, " {lmax}+1"]:
     """$A_l = 1$: the mirror BRDF reparameterized by the reflection vector (R&H eq. 17)."""
     lmax = check_lmax(lmax)
     return jnp.ones(lmax + 1, _default_dtype(dtype))
 
 
-def legendre_p(u: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lmax+1"]:
+def legendre_p(u: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*batch {lmax}+1"]:
     """Legendre polynomials $P_0..P_{l_{max}}$ at `u` by the three-term recurrence."""
     u = as_float_array(u, "u")
     lmax = check_lmax(lmax)
@@ -151,7 +151,7 @@ def legendre_p(u: Float[Array, "*batch"], lmax: int) -> Float[Array, "*batch lma
 
 def radial_spectrum(
     f: Callable, lmax: int, n_nodes: int = 256, support: tuple[float, float] = (-1.0, 1.0), dtype=None
-) -> Float[Array, " lmax+1"]:
+) -> Float[Array, " {lmax}+1"]:
     """Numerical $A_l = 2\\pi\\int f(u) P_l(u)\\,du$ of a radially symmetric transfer function.
 
     `f(u)` is a JAX-traceable function of $u = \\cos\\theta$ (angle from the
@@ -177,7 +177,7 @@ def radial_spectrum(
     return 2 * jnp.pi * jnp.einsum("n,nl->l", jnp.asarray(w, dt) * fu, legendre_p(u, lmax))
 
 
-def recoverable_orders(A: Float[Array, " lmax+1"], noise: float) -> tuple[np.ndarray, int]:
+def recoverable_orders(A: Real[ArrayLike, " L"], noise: float) -> tuple[np.ndarray, int]:
     """Which orders $l$ of the lighting a BRDF spectrum lets inverse lighting recover.
 
     Inverse lighting divides by $A_l$ (R&H eq. 12): a relative noise level
@@ -201,13 +201,13 @@ def recoverable_orders(A: Float[Array, " lmax+1"], noise: float) -> tuple[np.nda
 
 
 def torrance_sparrow_spectrum(
-    sigma: Float[Array, ""],
+    sigma: Real[ArrayLike, ""],
     lmax: int,
-    theta_o: Float[Array, ""] = 0.0,
-    mu: Float[Array, ""] | None = None,
+    theta_o: Real[ArrayLike, ""] = 0.0,
+    mu: Real[ArrayLike, ""] | None = None,
     n_theta: int = 192,
     n_phi: int = 128,
-) -> Float[Array, " lmax+1"]:
+) -> Float[Array, " {lmax}+1"]:
     """Numerical $A_l$ of the Torrance-Sparrow specular lobe about the reflection vector.
 
     The specular transfer function of R&H sec. 5.2,

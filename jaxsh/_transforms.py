@@ -18,7 +18,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_positive_int, coeff_layout
 from ._grids import fejer1_weights, latlong_angles
@@ -88,7 +88,7 @@ def _check_image(image):
 
 
 def project_latlong(
-    image: Float[Array, "H W *C"], lmax: int, *, allow_aliasing: bool = False
+    image: Real[ArrayLike, "H W *C"], lmax: int, *, allow_aliasing: bool = False
 ) -> Float[Array, "n_coeffs *C"]:
     """Real SH coefficients of a lat-long map: $c_{lm} = \\int f\\,Y_{lm}\\,d\\omega$.
 
@@ -178,7 +178,7 @@ def _project(image, lmax):
 
 
 def synthesize_latlong(
-    coeffs: Float[Array, "n_coeffs *C"], height: int, width: int
+    coeffs: Real[ArrayLike, "n_coeffs *C"], height: int, width: int
 ) -> Float[Array, "H W *C"]:
     """Evaluate a real SH expansion on the pixel centres of a lat-long map.
 
@@ -260,11 +260,11 @@ def _synthesize(coeffs, lmax, h, w):
 
 
 def fit_sh(
-    dirs: Float[Array, "N 3"],
-    values: Float[Array, "N *C"],
+    dirs: Real[ArrayLike, "N 3"],
+    values: Real[ArrayLike, "N *C"],
     lmax: int,
-    weights: Float[Array, " N"] | None = None,
-    ridge: float | Float[Array, ""] = 0.0,
+    weights: Real[ArrayLike, " N"] | None = None,
+    ridge: float | Real[ArrayLike, ""] = 0.0,
 ) -> Float[Array, "n_coeffs *C"]:
     """Least-squares SH coefficients of scattered samples.
 

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
@@ -72,7 +72,7 @@ class Observations(eqx.Module):
             take(self.pixel_index), self.image_shapes, self.n_texels,
         )
 
-    def to_images(self, values: Float[Array, "N C"], fill: float = 0.0) -> list[np.ndarray]:
+    def to_images(self, values: Real[ArrayLike, "N C"], fill: float = 0.0) -> list[np.ndarray]:
         """Scatter per-sample `values` `(N, C)` back into one `(H, W, C)` image per view."""
         values = np.asarray(values)
         if values.ndim != 2 or values.shape[0] != self.n_samples:
@@ -105,7 +105,7 @@ def _per_view(arrs, n_views, name, shape_tail, hw):
 
 def observations(
     gbuffers: Sequence[jaxsh.GBuffer],
-    images: Sequence[Float[Array, "H W C"]],
+    images: Sequence[Real[ArrayLike, "H W C"]],
     *,
     masks: Sequence | None = None,
     weights: Sequence | None = None,

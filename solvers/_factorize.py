@@ -61,7 +61,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
@@ -138,7 +138,7 @@ class _Blocks(eqx.Module):
     """Normal-equation blocks of eq. 25 for one mu, split at the l <= 2 columns, with pinv(SS22)."""
 
     g: Gram
-    p22: Array  # (n-9, n-9)
+    p22: Array | None  # (n-9, n-9); None in the vmap axis spec (`_channel_blocks`)
 
 
 def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float) -> _Blocks:
@@ -226,7 +226,7 @@ def _delta_profile(sigma, lmax: int, theta):
 
 @blas_single_thread
 def find_source(
-    coeffs: Float[Array, "n_coeffs C"],
+    coeffs: Real[ArrayLike, "n_coeffs C"],
     *,
     region: tuple | None = None,
     height: int = 128,

@@ -44,15 +44,19 @@ import jaxsh
 
 
 class Gram(eqx.Module):
-    """Sums over pixels of the two row blocks d (diffuse, 9 columns) and s (specular, n columns) of eq. 25."""
+    """Sums over pixels of the two row blocks d (diffuse, 9 columns) and s (specular, n columns) of eq. 25.
 
-    dd: jax.Array  # (9, 9)
-    ds: jax.Array  # (9, n)
-    ss: jax.Array  # (n, n)
-    db: jax.Array  # (9, C)
-    sb: jax.Array  # (n, C)
-    bb: jax.Array  # (C,)
-    count: jax.Array  # () pixels with positive weight
+    The fields are arrays; a `Gram` of `int | None` is also the `jax.vmap` axis spec of one
+    (`solvers._factorize._channel_blocks`), hence the annotations.
+    """
+
+    dd: jax.Array | int | None  # (9, 9)
+    ds: jax.Array | int | None  # (9, n)
+    ss: jax.Array | int | None  # (n, n)
+    db: jax.Array | int | None  # (9, C)
+    sb: jax.Array | int | None  # (n, C)
+    bb: jax.Array | int | None  # (C,)
+    count: jax.Array | int | None  # () pixels with positive weight
 
 
 def eq25_rows(n, v, transfer, rvis, mu, filt, lmax: int):

@@ -36,12 +36,13 @@ normal incidence (docs/conventions.md, "Lighting").
 from __future__ import annotations
 
 import operator
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
@@ -274,14 +275,14 @@ class SharingFit(Solution):
 
 
 def fit_sharing(
-    points: Float[Array, "N d"],
-    values: Float[Array, "N *C"],
+    points: Real[ArrayLike, "N d"],
+    values: Real[ArrayLike, "N *C"],
     n_centers: int,
-    scale: Float[Array, " d"] | None = None,
-    smoothing: float | Float[Array, ""] = 0.0,
+    scale: Real[ArrayLike, " d"] | Sequence[float] | None = None,
+    smoothing: float | Real[ArrayLike, ""] = 0.0,
     key: Array | None = None,
     *,
-    weights: Float[Array, " N"] | None = None,
+    weights: Real[ArrayLike, " N"] | None = None,
     tol: float | None = None,
     n_init: int | None = None,
     n_add: int | None = None,
@@ -518,13 +519,13 @@ def _per_light(x, n_lights, channels, name):
 
 
 def reflectance_samples(
-    images: Float[Array, "L H W *C"],
-    normal: Float[Array, "H W 3"],
-    view: Float[Array, "*HW 3"],
-    lights: Float[Array, "L 3"],
+    images: Real[ArrayLike, "L H W *C"],
+    normal: Real[ArrayLike, "H W 3"],
+    view: Real[ArrayLike, "*HW 3"],
+    lights: Real[ArrayLike, "L 3"],
     irradiance=1.0,
     mask=None,
-    xy: Float[Array, "H W 2"] | None = None,
+    xy: Real[ArrayLike, "H W 2"] | None = None,
     visible=None,
     min_cos: float = 0.0,
 ) -> Samples:

@@ -1,16 +1,28 @@
-"""Test configuration: float64, strict promotion, hypothesis profiles.
+"""Test configuration: float64, strict promotion, hypothesis profiles, the type-check hook.
 
 The library never flips global JAX flags; the test-suite does, here.
 Hypothesis profiles: "ci" (default, fast) and "thorough"
 (`HYPOTHESIS_PROFILE=thorough pytest`).
+
+Shapes in signatures are checked by jaxtyping's import hook with beartype
+(`--jaxtyping-packages=jaxsh,solvers,tests._typecheck.typechecker` in
+pyproject's `addopts`; see tests/_typecheck.py; pytest-xdist workers get it too). Inside `pytest.raises(...)` the
+check is switched off (`jaxtyping.config.jaxtyping_disable`): those blocks test
+the library's own errors (a `ValueError` naming the argument and the expected
+shape, DESIGN.md), which is what a user gets, since the annotation check runs
+only here. Everywhere else a call that breaks its annotation fails the test.
 """
 
+import functools
 import os
 import warnings
 
 import jax
+import jaxtyping
 import numpy as np
 import pytest
+
+from . import _typecheck as _typecheck  # the hook's typechecker; before any `import jaxsh`
 from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_enable_x64", True)
@@ -38,3 +50,40 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+class _Unchecked:
+    """`pytest.raises(...)`'s context with jaxtyping's runtime check off inside it."""
+
+    def __init__(self, ctx):
+        self._ctx = ctx
+        self._prev = None
+
+    def __enter__(self):
+        self._prev = jaxtyping.config.jaxtyping_disable
+        jaxtyping.config.update("jaxtyping_disable", True)
+        return self._ctx.__enter__()
+
+    def __exit__(self, *exc):
+        try:
+            return self._ctx.__exit__(*exc)
+        finally:
+            jaxtyping.config.update("jaxtyping_disable", self._prev)
+
+    def __getattr__(self, name):
+        return getattr(self._ctx, name)
+
+
+_pytest_raises = pytest.raises
+
+
+@functools.wraps(_pytest_raises)
+def _raises_unchecked(*args, **kwargs):
+    if len(args) > 1:  # the legacy form pytest.raises(E, func, *args)
+        with _Unchecked(_pytest_raises(args[0])) as info:
+            args[1](*args[2:], **kwargs)
+        return info
+    return _Unchecked(_pytest_raises(*args, **kwargs))
+
+
+pytest.raises = _raises_unchecked
