@@ -82,13 +82,16 @@ def _concrete(x):
     return np.asarray(x)
 
 
-def _check_geometry(x, name, batch, mask):
-    """A concrete `normals` / `views` array: finite and non-zero at every pixel of `mask` (all pixels without one)."""
+def _check_geometry(x, name, batch, mask, allow_zero=False):
+    """A concrete `normals` / `views` array: finite and non-zero at every pixel of `mask` (all pixels without one).
+
+    `allow_zero=True` accepts exact zero vectors (a G-buffer's misses, which render as 0) but not NaN/inf.
+    """
     a = _concrete(x)
     if a is None or a.size == 0:
         return
     norm = np.linalg.norm(np.broadcast_to(a, tuple(batch) + (3,)), axis=-1)
-    bad = ~np.isfinite(norm) | (norm == 0)
+    bad = ~np.isfinite(norm) if allow_zero else ~np.isfinite(norm) | (norm == 0)
     where = "without a `mask`"
     if mask is not None:
         m = _concrete(mask)
@@ -98,7 +101,8 @@ def _check_geometry(x, name, batch, mask):
         where = "inside the `mask`"
     if bad.any():
         i = tuple(int(k) for k in np.argwhere(bad)[0])
-        raise ValueError(f"`{name}` must be finite, non-zero directions {where}; pixel {i} is {a[i] if a.ndim > 1 else a}")
+        what = "finite directions (zero vectors mark misses)" if allow_zero else "finite, non-zero directions"
+        raise ValueError(f"`{name}` must be {what} {where}; pixel {i} is {a[i] if a.ndim > 1 else a}")
 
 
 def _check_channels(pairs):
@@ -309,7 +313,8 @@ def render_reference(
 
     **Arguments:**
 
-    - `normals`, `views`, `brdf`: as `render_practical`.
+    - `normals`, `views`, `brdf`: as `render_practical`; zero normals or views (a
+      G-buffer's misses) render as 0, NaN/inf is a `ValueError`.
     - `lighting`: a `jaxsh.Lighting` with fast sources (exact) and/or disks
       (quadrature), and no `slow_sh` (SH lighting is not integrated here;
       pass it as `envmap`). Optional when `envmap` is given.
@@ -328,8 +333,9 @@ def render_reference(
     normals = check_dirs(normals, "normals")
     views = check_dirs(views, "views")
     batch = _batch(normals, views)
-    _check_geometry(normals, "normals", batch, None)
-    _check_geometry(views, "views", batch, None)
+    # zero normals/views (a G-buffer's misses) render as 0, as before; NaN/inf is an error
+    _check_geometry(normals, "normals", batch, None, allow_zero=True)
+    _check_geometry(views, "views", batch, None, allow_zero=True)
     kd = _channels(brdf.kd, "kd")
     ks = _channels(brdf.ks, "ks")
     mu, sigma = brdf.mu, brdf.sigma
