@@ -35,20 +35,26 @@ from ._indexing import num_coeffs
 from ._lighting import directional_light_sh, disk_light_sh, split_disk_sources
 
 
-def _opt_float(x):
-    return None if x is None else as_float_array(x, "field")
+def _opt_float(name):
+    """Converter of an optional float field: errors name the field (e.g. `Lighting.fast_directions`)."""
+    return lambda x: None if x is None else as_float_array(x, name)
 
 
-def _opt_channels(x):
-    """`(K,)` -> `(K, 1)`: one channel, channels last."""
-    if x is None:
-        return None
-    x = as_float_array(x, "field")
-    return x[:, None] if x.ndim == 1 else x
+def _opt_channels(name):
+    """Converter of an optional `(K, C)` field: `(K,)` -> `(K, 1)` (one channel, channels last)."""
+
+    def convert(x):
+        if x is None:
+            return None
+        x = as_float_array(x, name)
+        return x[:, None] if x.ndim == 1 else x
+
+    return convert
 
 
-def _float(x):
-    return as_float_array(x, "field")
+def _float(name):
+    """Converter of a required float field."""
+    return lambda x: as_float_array(x, name)
 
 
 def _shape(x):
@@ -142,12 +148,12 @@ class Lighting(eqx.Module):
     disk_directions, disk_radius, disk_radiance)`.
     """
 
-    slow_sh: Float[Array, "n_coeffs C"] | None = eqx.field(default=None, converter=_opt_channels)
-    fast_directions: Float[Array, "J 3"] | None = eqx.field(default=None, converter=_opt_float)
-    fast_energy: Float[Array, "J C"] | None = eqx.field(default=None, converter=_opt_channels)
-    disk_directions: Float[Array, "D 3"] | None = eqx.field(default=None, converter=_opt_float)
-    disk_radius: Float[Array, " D"] | None = eqx.field(default=None, converter=_opt_float)
-    disk_radiance: Float[Array, "D C"] | None = eqx.field(default=None, converter=_opt_channels)
+    slow_sh: Float[Array, "n_coeffs C"] | None = eqx.field(default=None, converter=_opt_channels("Lighting.slow_sh"))
+    fast_directions: Float[Array, "J 3"] | None = eqx.field(default=None, converter=_opt_float("Lighting.fast_directions"))
+    fast_energy: Float[Array, "J C"] | None = eqx.field(default=None, converter=_opt_channels("Lighting.fast_energy"))
+    disk_directions: Float[Array, "D 3"] | None = eqx.field(default=None, converter=_opt_float("Lighting.disk_directions"))
+    disk_radius: Float[Array, " D"] | None = eqx.field(default=None, converter=_opt_float("Lighting.disk_radius"))
+    disk_radiance: Float[Array, "D C"] | None = eqx.field(default=None, converter=_opt_channels("Lighting.disk_radiance"))
 
     def __check_init__(self):
         fast = (self.fast_directions, self.fast_energy)
@@ -296,10 +302,10 @@ class TorranceSparrow(eqx.Module):
     Positional order: `TorranceSparrow(kd, ks, mu, sigma)`.
     """
 
-    kd: Float[Array, "*T C"] | Float[Array, ""] = eqx.field(converter=_float)
-    ks: Float[Array, "*T C"] | Float[Array, ""] = eqx.field(converter=_float)
-    mu: Float[Array, ""] | None = eqx.field(converter=_opt_float)
-    sigma: Float[Array, ""] = eqx.field(converter=_float)
+    kd: Float[Array, "*T C"] | Float[Array, ""] = eqx.field(converter=_float("TorranceSparrow.kd"))
+    ks: Float[Array, "*T C"] | Float[Array, ""] = eqx.field(converter=_float("TorranceSparrow.ks"))
+    mu: Float[Array, ""] | None = eqx.field(converter=_opt_float("TorranceSparrow.mu"))
+    sigma: Float[Array, ""] = eqx.field(converter=_float("TorranceSparrow.sigma"))
 
     def __check_init__(self):
         try:
