@@ -521,8 +521,8 @@ def _per_light(x, n_lights, channels, name):
 def reflectance_samples(
     images: Real[ArrayLike, "L H W *C"],
     normal: Real[ArrayLike, "H W 3"],
-    view: Real[ArrayLike, "*HW 3"],
-    lights: Real[ArrayLike, "L 3"],
+    view: Real[ArrayLike, "*HW 3"] | Sequence[float],
+    lights: Real[ArrayLike, "L 3"] | Sequence[Sequence[float]],
     irradiance=1.0,
     mask=None,
     xy: Real[ArrayLike, "H W 2"] | None = None,
