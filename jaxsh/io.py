@@ -46,6 +46,9 @@ __all__ = [
     "atomic_output",
     "read_envmap",
     "read_normal_map",
+    "read_texture",
+    "read_rbf",
+    "write_rbf",
     "read_manifest",
     "read_mesh",
     "ManifestError",
@@ -385,6 +388,129 @@ def read_normal_map(path) -> np.ndarray:
     return np.where(on[..., None], arr / np.where(on, norm, 1.0)[..., None], 0.0)
 
 
+def read_texture(path, channels: int = 3) -> np.ndarray:
+    """Read a texture map `(H, W, channels)` of non-negative finite values (EXR, PFM or `.npy`).
+
+    For per-pixel BRDF parameters (`result.json`'s `brdf.kd = "kd.exr"`):
+    float storage only (8/16-bit integer images are rejected: parameter
+    maps are not pictures), values finite and `>= 0`.
+
+    **Returns:** float64 `(H, W, channels)`. Raises `FileNotFoundError` /
+    `ValueError` naming the file.
+    """
+    path = os.fspath(path)
+    _check_readable(path, "texture map")
+    if path.lower().endswith(".npy"):
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"cannot read texture map {path!r}: {e}") from None
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise ValueError(f"texture map {path!r}: dtype must be float, got {arr.dtype}")
+    else:
+        arr, info = _read_pixels(path)
+        if not info["float"]:
+            raise ValueError(f"texture map {path!r}: {info['bits']}-bit integer images are not parameter maps; "
+                             "use EXR, PFM or .npy")
+    arr = np.asarray(arr, np.float64)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[-1] < channels:
+        raise ValueError(f"texture map {path!r} must have shape (H, W, {channels}), got {arr.shape}")
+    arr = arr[..., :channels]
+    bad = int(np.count_nonzero(~np.isfinite(arr)))
+    if bad:
+        raise ValueError(f"texture map {path!r}: {bad} values are not finite")
+    if np.any(arr < 0):
+        raise ValueError(f"texture map {path!r}: {int(np.count_nonzero(arr < 0))} values are negative (must be >= 0)")
+    return arr
+
+
+# ----------------------------------------------------------------------------- RBF reflectance files
+
+#: The `format` tag of the `.npz` files of `write_rbf` / `read_rbf`.
+RBF_FORMAT = "jaxsh-rbf-1"
+
+
+def write_rbf(path, model, *, spatial: bool, width: int | None = None, height: int | None = None) -> None:
+    """Write an RBF reflectance (Zickler 2006 eqs. 12-13) to an `.npz` file, atomically.
+
+    **Arguments:**
+
+    - `model`: a `jaxsh.RBFModel` over $(u, v, w)$ (`d = 3`, eq. 12) or
+      $(x, y, u, v, w)$ (`d = 5`, eq. 13).
+    - `spatial`: `True` for the 5-D SBRDF; then `width`, `height` give the
+      pixel grid its surface coordinates come from:
+      $x = (j + \\tfrac12)/W$, $y = (i + \\tfrac12)/H$ at row $i$, column $j$.
+
+    The file holds `format` (`RBF_FORMAT`), `centers` `(K, d)`, `weights`
+    `(K, C)`, `poly` `(d + 1, C)`, `scale` `(d,)`, `spatial`, `width`,
+    `height` (−1 when not spatial), all float64 / int64 — no pickles.
+    """
+    path = os.fspath(path)
+    centers = np.asarray(model.centers, np.float64)
+    d = centers.shape[1]
+    if d != (5 if spatial else 3):
+        raise ValueError(f"`model` must have {'5' if spatial else '3'}-D points for spatial={spatial}, got d = {d}")
+    if spatial and (width is None or height is None):
+        raise ValueError("`width` and `height` (the pixel grid of the surface coordinates) are required when spatial=True")
+    w = np.asarray(model.weights, np.float64)
+    poly = np.asarray(model.poly, np.float64)
+    if model.channels is None:
+        w, poly = w[:, :1], poly[:, :1]
+    arrays = {"format": np.asarray(RBF_FORMAT), "centers": centers, "weights": w, "poly": poly,
+              "scale": np.asarray(model.scale, np.float64), "spatial": np.asarray(bool(spatial)),
+              "width": np.asarray(-1 if width is None else int(width)), "height": np.asarray(-1 if height is None else int(height))}
+    for k, a in arrays.items():
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise ValueError(f"{path}: refusing to write non-finite RBF `{k}`")
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
+def read_rbf(path) -> dict:
+    """Read an RBF reflectance file of `write_rbf`.
+
+    **Returns:** `{"model": jaxsh.RBFModel, "spatial": bool, "width": int | None,
+    "height": int | None}`. Every problem (not an `.npz`, a missing or
+    mis-shaped array, non-finite values, another `format`) is a `ValueError`
+    naming the file and the array.
+    """
+    from ._rbf import RBFModel
+
+    path = os.fspath(path)
+    _check_readable(path, "RBF file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError) as e:
+        raise ValueError(f"cannot read RBF file {path!r} (expected an .npz of jaxsh.io.write_rbf): {e}") from None
+    for key in ("format", "centers", "weights", "poly", "scale", "spatial", "width", "height"):
+        if key not in data:
+            raise ValueError(f"RBF file {path!r}: missing array `{key}`")
+    if str(data["format"]) != RBF_FORMAT:
+        raise ValueError(f"RBF file {path!r}: `format` is {str(data['format'])!r}, expected {RBF_FORMAT!r}")
+    c, w, p, sc = (np.asarray(data[k], np.float64) for k in ("centers", "weights", "poly", "scale"))
+    spatial = bool(data["spatial"])
+    d = 5 if spatial else 3
+    k = c.shape[0] if c.ndim == 2 else -1
+    want = {"centers": (k, d), "weights": (k, w.shape[-1] if w.ndim == 2 else -1), "poly": (d + 1, w.shape[-1] if w.ndim == 2 else -1),
+            "scale": (d,)}
+    for name, a in (("centers", c), ("weights", w), ("poly", p), ("scale", sc)):
+        if a.shape != want[name] or k < 1:
+            raise ValueError(f"RBF file {path!r}: `{name}` must have shape {want[name]}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"RBF file {path!r}: `{name}` has non-finite values")
+    if np.any(sc <= 0):
+        raise ValueError(f"RBF file {path!r}: `scale` must be > 0")
+    width, height = int(data["width"]), int(data["height"])
+    if spatial and (width < 1 or height < 1):
+        raise ValueError(f"RBF file {path!r}: a spatial RBF needs `width`, `height` >= 1, got {width}x{height}")
+    return {"model": RBFModel(c, w, p, sc), "spatial": spatial,
+            "width": width if spatial else None, "height": height if spatial else None}
+
+
 # ----------------------------------------------------------------------------- environment maps
 
 
@@ -496,7 +622,8 @@ class _ManifestNotFound(ManifestError, FileNotFoundError):
 
 _BRDF_MODELS = ("torrance_sparrow", "sharing", "sharing_spatial")
 _SOLVE_DEFAULTS = {"lighting_lmax": 12, "render_lmax": None, "fresnel": True, "saturation": None,
-                   "brdf_model": "torrance_sparrow"}
+                   "brdf_model": "torrance_sparrow", "textured": None, "n_centers": 400, "m_w": 0.3, "m_xy": 0.3,
+                   "tol": None, "min_cos": 0.1, "max_samples": 200000}
 
 
 class _Reader:
@@ -740,8 +867,12 @@ def read_manifest(path) -> dict:
       image's maximum code value for integer images;
     - `lighting`: None (unknown) or `{"envmap": abs_path | None, "up", "layout", "encoding",
       "directional": [{"direction": (3,) unit, "radiance": (3,)}]}`;
-    - `brdf`: None (unknown) or `{"model": "torrance_sparrow", "kd": (3,), "ks": (3,), "mu", "sigma"}`;
-    - `solve`: `{"lighting_lmax", "render_lmax", "fresnel", "saturation", "brdf_model"}` with defaults;
+    - `brdf`: None (unknown), `{"model": "torrance_sparrow", "kd", "ks", "mu": float | None, "sigma",
+      "files": {"kd"?: abs_path, "ks"?: abs_path}}` with `kd`, `ks` each `(3,)` or a texture map
+      `(H, W, 3)` read from the file the manifest names (`read_texture`; the views' pixel grid), or `{"model": "rbf", "file": abs_path, "spatial": bool,
+      "rbf": read_rbf(file)}`;
+    - `solve`: `{"lighting_lmax", "render_lmax", "fresnel", "saturation", "brdf_model", "textured",
+      "n_centers", "m_w", "m_xy", "tol", "min_cos", "max_samples"}` with defaults (docs/manifest.md);
     - `encoding`: the top-level default encoding or None; `path`: the manifest's absolute path.
 
     Every problem raises `ManifestError` (a `ValueError`) naming the file and
@@ -835,17 +966,7 @@ def read_manifest(path) -> dict:
 
     lighting = _lighting(r, raw.get("lighting"), "lighting")
 
-    brdf = None
-    if raw.get("brdf") is not None:
-        b = r.obj(raw["brdf"], "brdf", {"model", "kd", "ks", "mu", "sigma"}, required=("model", "kd", "ks", "mu", "sigma"))
-        model = r.choice(b["model"], "brdf.model", ("torrance_sparrow",))
-        brdf = {
-            "model": model,
-            "kd": r.rgb(b["kd"], "brdf.kd"),
-            "ks": r.rgb(b["ks"], "brdf.ks"),
-            "mu": r.number(b["mu"], "brdf.mu", ge=1),
-            "sigma": r.number(b["sigma"], "brdf.sigma", gt=0),
-        }
+    brdf = _brdf_block(r, raw.get("brdf"), views)
 
     s = {} if raw.get("solve") is None else r.obj(raw["solve"], "solve", set(_SOLVE_DEFAULTS))
     solve = dict(_SOLVE_DEFAULTS)
@@ -859,8 +980,73 @@ def read_manifest(path) -> dict:
         solve["saturation"] = r.number(s["saturation"], "solve.saturation", gt=0)
     if s.get("brdf_model") is not None:
         solve["brdf_model"] = r.choice(s["brdf_model"], "solve.brdf_model", _BRDF_MODELS)
+    if s.get("textured") is not None:
+        solve["textured"] = r.choice(s["textured"], "solve.textured", ("kd", "kd_ks"))
+    for key in ("n_centers", "max_samples"):
+        if s.get(key) is not None:
+            solve[key] = r.integer(s[key], f"solve.{key}", ge=1)
+    for key in ("m_w", "m_xy", "tol"):
+        if s.get(key) is not None:
+            solve[key] = r.number(s[key], f"solve.{key}", gt=0)
+    if s.get("min_cos") is not None:
+        solve["min_cos"] = r.number(s["min_cos"], "solve.min_cos", ge=0)
+        if solve["min_cos"] >= 1:
+            raise r.err("solve.min_cos", f"must be < 1, got {solve['min_cos']}")
+    if solve["textured"] is not None and solve["brdf_model"] != "torrance_sparrow":
+        raise r.err("solve.textured", f'needs `solve.brdf_model` "torrance_sparrow", got {solve["brdf_model"]!r}')
     return {"path": os.path.abspath(path), "geometry": geometry, "views": views, "lighting": lighting, "brdf": brdf,
             "solve": solve, "encoding": default_enc}
+
+
+def _brdf_block(r: _Reader, b, views: list):
+    """The validated `brdf` block: Torrance-Sparrow (RGB values or texture maps) or an RBF file."""
+    if b is None:
+        return None
+    if not isinstance(b, dict):
+        raise r.err("brdf", f"must be an object or null, got {_show(b)}")
+    model = r.choice(b.get("model"), "brdf.model", ("torrance_sparrow", "rbf"))
+    if model == "rbf":
+        r.obj(b, "brdf", {"model", "file", "spatial", "n_centers"}, required=("model", "file"))
+        p = r.file(b["file"], "brdf.file", must_exist=True)
+        try:
+            rbf = read_rbf(p)
+        except (ValueError, OSError) as e:
+            raise r.err("brdf.file", f"cannot be used: {e}") from None
+        if b.get("spatial") is not None and r.boolean(b["spatial"], "brdf.spatial") != rbf["spatial"]:
+            raise r.err("brdf.spatial", f"is {b['spatial']} but the file {p} holds a {'5' if rbf['spatial'] else '3'}-D RBF")
+        n_c = int(rbf["model"].centers.shape[0])
+        if b.get("n_centers") is not None and r.integer(b["n_centers"], "brdf.n_centers", ge=1) != n_c:
+            raise r.err("brdf.n_centers", f"is {b['n_centers']} but the file {p} has {n_c} centres")
+        if rbf["spatial"]:
+            for k, v in enumerate(views):
+                c = v["camera"]
+                if (c["width"], c["height"]) != (rbf["width"], rbf["height"]):
+                    raise r.err(f"views[{k}].camera", f"is {c['width']}x{c['height']} but the spatial RBF {p} has surface "
+                                                      f"coordinates in a {rbf['width']}x{rbf['height']} pixel grid")
+        return {"model": "rbf", "file": p, "spatial": rbf["spatial"], "rbf": rbf}
+    r.obj(b, "brdf", {"model", "kd", "ks", "mu", "sigma"}, required=("model", "kd", "ks", "sigma"))
+    if "mu" not in b:
+        raise ManifestError(f"{r.path}: missing field `brdf.mu` (a number >= 1, or null for no Fresnel term)")
+    out = {"model": model, "mu": None if b["mu"] is None else r.number(b["mu"], "brdf.mu", ge=1),
+           "sigma": r.number(b["sigma"], "brdf.sigma", gt=0), "files": {}}
+    for key in ("kd", "ks"):
+        v = b[key]
+        if not isinstance(v, str):
+            out[key] = r.rgb(v, f"brdf.{key}")
+            continue
+        p = r.file(v, f"brdf.{key}", must_exist=True)
+        try:
+            tex = read_texture(p)
+        except (ValueError, OSError) as e:
+            raise r.err(f"brdf.{key}", f"cannot be used: {e}") from None
+        for k, view in enumerate(views):
+            c = view["camera"]
+            if tex.shape[:2] != (c["height"], c["width"]):
+                raise r.err(f"brdf.{key}", f"is a {tex.shape[1]}x{tex.shape[0]} map but `views[{k}].camera` is "
+                                           f"{c['width']}x{c['height']}: a texture map is in the views' pixel grid ({p})")
+        out[key] = tex
+        out["files"][key] = p
+    return out
 
 
 def _same_camera(a: dict, b: dict) -> bool:

@@ -44,4 +44,5 @@ from ._sharing import (
     fit_one_image as fit_one_image,
     fit_sbrdf as fit_sbrdf,
     reflectance_samples as reflectance_samples,
+    render_rbf as render_rbf,
 )

@@ -23,6 +23,7 @@ import os
 import sys
 import time
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,14 +35,17 @@ from ._data import Lighting, TorranceSparrow, observations, predict, status_name
 from ._factorize import factorize
 from ._lighting import inverse_lighting
 from ._render_manifest import (
-    _mesh_visibility,
-    camera_from_manifest,
     check_outputs,
     check_unsupported,
     lighting_from_block,
     lighting_from_manifest,
+    pixel_xy,
+    render_rbf_view,
+    same_camera,
+    view_geometry,
     view_lighting_blocks,
 )
+from ._sharing import Samples, fit_homogeneous, fit_sbrdf, reflectance_samples
 
 
 def _json(x):
@@ -59,6 +63,42 @@ def _brdf_json(b: TorranceSparrow) -> dict:
     return {"model": "torrance_sparrow", "kd": _json(b.kd), "ks": _json(b.ks), "mu": _json(b.mu), "sigma": _json(b.sigma)}
 
 
+def _check_models(m: dict, blocks) -> None:
+    """Before any work: the combinations `solve.brdf_model` / `solve.textured` need (one-line `ManifestError`)."""
+    solve, path = m["solve"], m["path"]
+    model, known = solve["brdf_model"], m["lighting"] is not None or blocks is not None
+    if model != "torrance_sparrow":
+        if not known or m["brdf"] is not None:
+            raise jio.ManifestError(f"{path}: `solve.brdf_model` {model!r} recovers the BRDF under known lighting: "
+                                    "give `lighting` (or `views[k].lighting`) and set `brdf` to null")
+        for k, lit in enumerate(blocks or [m["lighting"]] * len(m["views"])):
+            where = "lighting" if lit is m["lighting"] else f"views[{k}].lighting"
+            if lit["envmap"] is not None or len(lit["directional"]) != 1:
+                raise jio.ManifestError(
+                    f"{path}: `{where}` must be exactly one `directional` source and no `envmap` for `solve.brdf_model` "
+                    f"{model!r} (Zickler 2006: one directional light per image)")
+        if model == "sharing_spatial" and not same_camera(m["views"]):
+            raise jio.ManifestError(f"{path}: `solve.brdf_model` \"sharing_spatial\" takes its surface coordinates from the "
+                                    "pixel grid of one camera: every `views[k].camera` must equal `views[0].camera`")
+    if solve["textured"] is not None:
+        if not known or m["brdf"] is not None:
+            raise jio.ManifestError(f"{path}: `solve.textured` fits a textured BRDF under known lighting: give `lighting` "
+                                    "(or `views[k].lighting`) and set `brdf` to null")
+        if not same_camera(m["views"]):
+            raise jio.ManifestError(f"{path}: `solve.textured` has one texel per pixel of one camera: every "
+                                    "`views[k].camera` must equal `views[0].camera`")
+
+
+def _out_names(m: dict) -> list[str]:
+    n, solve = len(m["views"]), m["solve"]
+    names = ["result.json", "lighting.exr", "lighting.png"] + [f"view_{k:03d}{e}" for k in range(n) for e in (".exr", ".png")]
+    if solve["brdf_model"] != "torrance_sparrow":
+        names.append("brdf_rbf.npz")
+    if solve["textured"] is not None:
+        names += ["kd.exr"] + (["ks.exr"] if solve["textured"] == "kd_ks" else [])
+    return names
+
+
 def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     """Run the fit a manifest asks for and write the results (module docstring). Returns `result.json`'s dict."""
     t_all = time.perf_counter()
@@ -72,7 +112,14 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     blocks = view_lighting_blocks(m, "fit")  # None: the top-level lighting (or none) for every view
     if (m["lighting"] is not None or blocks is not None) and m["brdf"] is not None:
         raise jio.ManifestError(f"{m['path']}: both `lighting` and `brdf` are given: nothing to recover (set one to null)")
+    if m["brdf"] is not None and m["brdf"]["model"] != "torrance_sparrow":
+        raise jio.ManifestError(f"{m['path']}: `brdf.model` \"rbf\" cannot be the known BRDF of inverse lighting "
+                                "(give a Torrance-Sparrow `brdf`, or render with `jaxsh render`)")
+    if m["brdf"] is not None and any(np.ndim(m["brdf"][key]) > 1 for key in ("kd", "ks")):
+        raise jio.ManifestError(f"{m['path']}: a texture-map `brdf.kd`/`brdf.ks` is not supported by inverse lighting "
+                                "(`jaxsh fit` with a known BRDF needs RGB values)")
     check_unsupported(m, "fit")
+    _check_models(m, blocks)
     for k, v in enumerate(m["views"]):
         if not v.get("image"):
             raise jio.ManifestError(f"{m['path']}: `views[{k}].image` is required by `jaxsh fit`")
@@ -80,9 +127,10 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
             if v.get(key) and not os.path.exists(v[key]):
                 raise jio.ManifestError(f"{m['path']}: `views[{k}].{key}` file not found: {v[key]}")
     n = len(m["views"])
-    names = ["result.json", "lighting.exr", "lighting.png"] + [f"view_{k:03d}{e}" for k in range(n) for e in (".exr", ".png")]
+    names = _out_names(m)
     outs = dict(zip(names, check_outputs(m, out_dir, names)))
     solve = m["solve"]
+    model = solve["brdf_model"]
     lmax = int(solve["lighting_lmax"])
     for k, view in enumerate(m["views"]):  # headers only: every shape checked before any work
         c = view["camera"]
@@ -109,15 +157,10 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     view_light = (lambda k: known) if per_view is None else (lambda k: per_view[k])
     t = time.perf_counter()
     gbs, imgs, masks, extras = [], [], [], []
+    maps = {}
     for k, view in enumerate(m["views"]):
         say(f"view {k + 1}/{n}: G-buffer{' and visibility' if mesh is not None else ''}")
-        cam = camera_from_manifest(view["camera"])
-        if mesh is None:
-            g = jaxsh.sphere_gbuffer(cam, m["geometry"]["sphere"]["center"], m["geometry"]["sphere"]["radius"])
-            extra = {}
-        else:
-            g = jaxsh.mesh_gbuffer(cam, mesh)
-            extra = _mesh_visibility(mesh, g, None if known is None else view_light(k).fast_directions)
+        g, extra = view_geometry(m, k, mesh, None if known is None else view_light(k).fast_directions, maps)
         img, unclipped = jio.read_radiance(view["image"], view["encoding"], view["exposure"], view["saturation"])
         img = np.asarray(img, np.float64)[..., :3]
         if img.shape[:2] != tuple(np.asarray(g.mask).shape):
@@ -125,6 +168,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
                 f"{view['image']}: image is {img.shape[1]}x{img.shape[0]} but `views[{k}].camera` is "
                 f"{np.asarray(g.mask).shape[1]}x{np.asarray(g.mask).shape[0]}"
             )
+        if img.shape[2] != 3:
+            raise jio.ManifestError(f"{view['image']}: `views[{k}].image` must have 3 channels (RGB), got {img.shape[2]}")
         mask = unclipped
         if view.get("mask"):
             # masks are not radiance: code values are scaled to [0, 1] (no transfer function), used where > 0.5
@@ -134,6 +179,9 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         imgs.append(img)
         masks.append(mask)
         extras.append(extra)
+    if model != "torrance_sparrow":
+        timings["setup"] = time.perf_counter() - t
+        return _fit_sharing(m, gbs, imgs, masks, extras, per_view or [known] * n, known, outs, timings, say, out_dir)
     vis = {}
     for key in ("transfer", "reflected_visibility", "fast_visibility"):
         if extras and key in extras[0]:
@@ -141,14 +189,23 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     if "fast_visibility" in vis:  # per-view source counts differ: pad the columns (unused ones are ignored)
         j = max(a.shape[-1] for a in vis["fast_visibility"])
         vis["fast_visibility"] = [np.pad(a, ((0, 0), (0, 0), (0, j - a.shape[-1]))) for a in vis["fast_visibility"]]
+    textured = solve["textured"]
+    texel = None
+    if textured is not None:  # one texel per pixel of the (common) camera
+        hh, ww = np.asarray(gbs[0].mask).shape
+        texel = np.arange(hh * ww, dtype=np.int32).reshape(hh, ww)
+        vis["texel"] = [texel] * n
+        vis["n_texels"] = hh * ww
     obs = observations(gbs, imgs, masks=masks, saturation=solve.get("saturation"), **vis)
     timings["setup"] = time.perf_counter() - t
     say(f"{obs.n_samples} valid pixels in {len(gbs)} views")
     t = time.perf_counter()
     std = None
     if known is not None:
-        say("known lighting: fitting Kd, Ks, mu, sigma (simplex + Levenberg-Marquardt, R&H sec. 6.1)")
-        res = fit_brdf(obs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)))
+        say("known lighting: fitting " + ("Kd, Ks" if textured is None else f"per-texel {textured}") +
+            ", mu, sigma (simplex + Levenberg-Marquardt, R&H sec. 6.1)")
+        res = fit_brdf(obs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
+                       textured=textured)
         brdf, lighting, std = res.brdf, known, res.std_errors
         light_sh = known.total_sh(lmax)
         display_sh = light_sh
@@ -176,32 +233,46 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         return outs[name]
 
     t = time.perf_counter()
-    h = max(32, 4 * (lmax + 1))
-    env = np.asarray(jaxsh.synthesize_latlong(display_sh, h, 2 * h))
-    jio.write_image(out("lighting.exr"), env)
-    jio.write_image(out("lighting.png"), np.maximum(env, 0))
+    _write_lighting(out, display_sh, lmax)
     for k, g in enumerate(gbs):
         lit_k = lighting if per_view is None else per_view[k]
-        img = np.asarray(predict(brdf, lit_k, g.normal, g.view, mask=g.mask, **extras[k]))
+        img = np.asarray(predict(brdf, lit_k, g.normal, g.view, mask=g.mask, texel=texel, **extras[k]))
         jio.write_image(out(f"view_{k:03d}.exr"), img)
         jio.write_image(out(f"view_{k:03d}.png"), img)
+    brdf_json = _brdf_json(brdf)
+    if textured is not None:  # per-texel values as maps in the camera's pixel grid; unobserved texels 0
+        seen = np.asarray(res.texel_count) > 0
+        hh, ww = texel.shape
+        for key in ("kd",) + (("ks",) if textured == "kd_ks" else ()):
+            a = np.where(seen[:, None], np.asarray(getattr(brdf, key)), 0.0).reshape(hh, ww, -1)
+            jio.write_image(out(f"{key}.exr"), a)
+            brdf_json[key] = f"{key}.exr"
+        if textured == "kd":  # one Ks for all texels (broadcast to (T, C) by the fit)
+            brdf_json["ks"] = _json(np.asarray(brdf.ks).reshape(-1, np.shape(brdf.ks)[-1])[0])
     timings["write"] = time.perf_counter() - t
-    lighting_json = {"lmax": lmax, "frame": "world, +z up", "coeffs": _json(jnp.asarray(light_sh)[: jaxsh.num_coeffs(lmax)])}
+    lighting_json = _lighting_json(light_sh, lmax)
     if m["lighting"] is None and lighting.fast_directions is not None:
         lighting_json["directional"] = [
             {"direction": _json(d), "radiance": _json(e)} for d, e in zip(lighting.fast_directions, lighting.fast_energy)
         ]
+    std_json = None
+    if known is not None or m["brdf"] is None:
+        std_json = {k_: (None if textured is not None and np.ndim(getattr(std, k_)) > 1 else _json(getattr(std, k_)))
+                    for k_ in ("kd", "ks", "mu", "sigma")}
     result = {
-        "brdf": _brdf_json(brdf),
+        "brdf": brdf_json,
         "lighting": lighting_json,
-        "std_errors": {"kd": _json(std.kd), "ks": _json(std.ks), "mu": _json(std.mu), "sigma": _json(std.sigma)}
-        if known is not None or m["brdf"] is None else None,
+        "std_errors": std_json,
         "status": status_name(res.status),
         "rms": _json(res.rms),
         "rel_rms": _json(res.rel_rms),
         "iterations": int(getattr(res, "iterations", 0)),
         "timings_s": timings,
     }
+    if textured is not None:
+        result["texels"] = {"grid": "the pixels of views[0].camera (row-major)", "width": int(texel.shape[1]),
+                            "height": int(texel.shape[0]), "observed": int(np.count_nonzero(seen)),
+                            "unobserved_value": 0.0}
     if per_view is not None:
         result["lighting"]["per_view"] = "views[k].lighting of the manifest (this block: view 0's, or the top-level one)"
     if known is not None:
@@ -212,4 +283,109 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         result["lighting"]["supported_lmax"] = _json(res.supported_lmax)
     jio.write_json(out("result.json"), result)
     say(f"wrote {out_dir}/result.json, lighting.exr/.png and {len(gbs)} re-renders")
+    return result
+
+
+def _lighting_json(light_sh, lmax: int) -> dict:
+    return {"lmax": lmax, "frame": "world, +z up", "coeffs": _json(jnp.asarray(light_sh)[: jaxsh.num_coeffs(lmax)])}
+
+
+def _write_lighting(out, display_sh, lmax: int) -> None:
+    h = max(32, 4 * (lmax + 1))
+    env = np.asarray(jaxsh.synthesize_latlong(display_sh, h, 2 * h))
+    jio.write_image(out("lighting.exr"), env)
+    jio.write_image(out("lighting.png"), np.maximum(env, 0))
+
+
+def _fit_sharing(m, gbs, imgs, masks, extras, lights, known, outs, timings, say, out_dir) -> dict:
+    """Reflectance sharing (Zickler 2006): eq. 12 (`"sharing"`) or eq. 13 (`"sharing_spatial"`) from one light per view."""
+    solve = m["solve"]
+    spatial = solve["brdf_model"] == "sharing_spatial"
+    t = time.perf_counter()
+    hh, ww = np.asarray(gbs[0].mask).shape
+    xy = pixel_xy(ww, hh) if spatial else None
+    parts, per_view = [], []
+    dirs = np.stack([np.asarray(lit.fast_directions)[0] for lit in lights])
+    irr = np.stack([np.asarray(lit.fast_energy)[0] for lit in lights])
+    keep = np.stack([mk & np.asarray(g.mask) for mk, g in zip(masks, gbs)])
+    keep &= (irr.min(-1) > 0)[:, None, None]  # a black light carries no reflectance sample
+    if "fast_visibility" in extras[0]:
+        keep &= np.stack([np.asarray(e["fast_visibility"])[..., 0] > 0.5 for e in extras])
+    one_grid = all(np.array_equal(np.asarray(g.normal), np.asarray(gbs[0].normal))
+                   and np.array_equal(np.asarray(g.view), np.asarray(gbs[0].view)) for g in gbs[1:])
+    groups = [list(range(len(gbs)))] if one_grid else [[k] for k in range(len(gbs))]  # photometric stereo: one call
+    per_view = [0] * len(gbs)
+    for ks in groups:
+        g = gbs[ks[0]]
+        if not keep[ks].any():
+            continue
+        try:
+            s = reflectance_samples(np.stack([imgs[k] for k in ks]), g.normal, g.view, dirs[ks], irradiance=irr[ks],
+                                    mask=keep[ks].any(0), xy=xy, visible=keep[ks], min_cos=solve["min_cos"])
+        except ValueError as err:
+            if "no usable samples" not in str(err):
+                raise
+            continue  # every pixel of these views is grazing or facing away: counted as 0 samples
+        img_idx = np.asarray(ks)[np.asarray(s.image)]
+        s = Samples(s.points, s.values, s.cos_i, s.wi, s.wo, s.n, s.xy, jnp.asarray(img_idx), s.pixel)
+        for k in ks:
+            per_view[k] = int(np.count_nonzero(img_idx == k))
+        parts.append(s)
+    total = sum(per_view)
+    if total == 0:
+        raise ValueError(f"{m['path']}: no usable reflectance samples in any view (every pixel is masked, clipped, "
+                         f"shadowed or beyond `solve.min_cos` = {solve['min_cos']})")
+    samples = parts[0] if len(parts) == 1 else jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+    n_used = total
+    if total > solve["max_samples"]:  # a few hundred centres need far fewer samples than millions of pixels
+        sel = np.sort(np.random.default_rng(0).choice(total, solve["max_samples"], replace=False))
+        samples = jax.tree.map(lambda a: a[sel], samples)
+        n_used = solve["max_samples"]
+    timings["setup"] += time.perf_counter() - t
+    k_c = min(solve["n_centers"], n_used)
+    say(f"{total} reflectance samples in {len(gbs)} views ({n_used} used); reflectance sharing, Zickler 2006 eq. "
+        f"{'13' if spatial else '12'}, up to {k_c} centres")
+    t = time.perf_counter()
+    kw = {"tol": solve["tol"]} if solve["tol"] is not None else {}
+    if spatial:
+        res = fit_sbrdf(samples, k_c, m_xy=solve["m_xy"], m_w=solve["m_w"], **kw)
+    else:
+        res = fit_homogeneous(samples, k_c, m_w=solve["m_w"], **kw)
+    timings["solve"] = time.perf_counter() - t
+    say(f"solved: status {status_name(res.status)}, relative RMS {float(res.rel_rms):.4f}")
+    os.makedirs(out_dir, exist_ok=True)
+    t = time.perf_counter()
+    lmax = int(solve["lighting_lmax"])
+    _write_lighting(outs.__getitem__, known.total_sh(lmax), lmax)
+    model = res.fit.model
+    jio.write_rbf(outs["brdf_rbf.npz"], model, spatial=spatial, width=ww if spatial else None, height=hh if spatial else None)
+    block = {"model": "rbf", "spatial": spatial, "rbf": {"model": model, "spatial": spatial, "width": ww, "height": hh}}
+    for k, (g, extra, lit) in enumerate(zip(gbs, extras, lights)):
+        img = render_rbf_view(block, g, np.asarray(lit.fast_directions), np.asarray(lit.fast_energy),
+                              extra.get("fast_visibility"))
+        jio.write_image(outs[f"view_{k:03d}.exr"], img)
+        jio.write_image(outs[f"view_{k:03d}.png"], img)
+    timings["write"] = time.perf_counter() - t
+    result = {
+        "brdf": {"model": "rbf", "file": "brdf_rbf.npz", "spatial": spatial, "n_centers": int(model.centers.shape[0])},
+        "lighting": _lighting_json(known.total_sh(lmax), lmax),
+        "std_errors": None,
+        "status": status_name(res.status),
+        "rms": _json(res.rms),
+        "rel_rms": _json(res.rel_rms),
+        "iterations": int(res.iterations),
+        "timings_s": timings,
+        "sharing": {
+            "equation": 13 if spatial else 12,
+            "metric": {"m_w": solve["m_w"], **({"m_xy": solve["m_xy"]} if spatial else {})},
+            "samples": n_used, "samples_total": total, "samples_per_view": per_view,
+            "history_centers": [int(x) for x in np.asarray(res.fit.history_centers)],
+            "history_rel_rms": _json(res.fit.history_rms),
+            **({"xy": f"pixel grid of views[0].camera: x = (column + 0.5) / {ww}, y = (row + 0.5) / {hh}"} if spatial else {}),
+        },
+    }
+    if m["lighting"] is None:
+        result["lighting"]["per_view"] = "views[k].lighting of the manifest (this block: view 0's)"
+    jio.write_json(outs["result.json"], result)
+    say(f"wrote {out_dir}/result.json, brdf_rbf.npz, lighting.exr/.png and {len(gbs)} re-renders")
     return result

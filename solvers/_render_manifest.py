@@ -13,6 +13,8 @@ import numpy as np
 import jaxsh
 from jaxsh import io as jio
 
+from ._sharing import render_rbf
+
 
 def camera_from_manifest(c: dict):
     """A jaxsh camera from a validated manifest camera block."""
@@ -70,22 +72,62 @@ def _inputs(m: dict) -> list[str]:
     paths += [lit["envmap"] for lit in lightings if lit and lit.get("envmap")]
     for v in m["views"]:
         paths += [v[k] for k in ("image", "mask", "normal_map") if v.get(k)]
+    b = m["brdf"]
+    if b is not None:
+        paths += [b["file"]] if b["model"] == "rbf" else list(b["files"].values())
     return [os.path.abspath(p) for p in paths]
 
 
 def check_unsupported(m: dict, command: str) -> None:
-    """Stop with a one-line `ManifestError` on a parsed field the fitting/rendering code cannot use yet."""
-    fields = []
-    if "normal_map" in m["geometry"]:
-        fields.append("geometry.normal_map")
-    for k, v in enumerate(m["views"]):
-        if v.get("normal_map"):
-            fields.append(f"views[{k}].normal_map")
-    if m["solve"].get("brdf_model", "torrance_sparrow") != "torrance_sparrow":
-        fields.append(f"solve.brdf_model = {m['solve']['brdf_model']!r}")
-    if fields:
-        more = f" (and {len(fields) - 1} more)" if len(fields) > 1 else ""
-        raise jio.ManifestError(f"{m['path']}: `{fields[0]}` is not supported yet by `jaxsh {command}`{more}")
+    """Stop with a one-line `ManifestError` on a parsed field the fitting/rendering code cannot use here.
+
+    Every manifest field is used by both commands, with these exceptions: an
+    RBF `brdf` renders under directional sources only (Zickler 2006's
+    reflectance is sampled under directional light; an environment map
+    would need its integral over the RBF); `solve.brdf_model` other than
+    `"torrance_sparrow"` needs one directional source per view.
+    """
+    b = m["brdf"]
+    if command == "render" and b is not None and b["model"] == "rbf":
+        for k, lit in enumerate(view_lighting_blocks(m, command) or [m["lighting"]] * len(m["views"])):
+            if lit is not None and lit["envmap"] is not None:
+                where = "lighting.envmap" if lit is m["lighting"] else f"views[{k}].lighting.envmap"
+                raise jio.ManifestError(f"{m['path']}: `{where}` cannot light an RBF `brdf` (model \"rbf\"): "
+                                        "`jaxsh render` renders RBF reflectance under `directional` sources only")
+
+
+def same_camera(views: list) -> bool:
+    """Whether every view of a validated manifest has the same camera block (one pixel grid)."""
+    c0 = views[0]["camera"]
+    return all(v["camera"].keys() == c0.keys() and all(
+        np.array_equal(v["camera"][key], c0[key]) for key in c0) for v in views[1:])
+
+
+def pixel_xy(width: int, height: int) -> np.ndarray:
+    """Surface coordinates of a pixel grid for the SBRDF (Zickler eq. 13): $x = (j+\\frac12)/W$, $y = (i+\\frac12)/H$, `(H, W, 2)`."""
+    j, i = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
+    return np.stack([j, i], -1)
+
+
+def view_geometry(m: dict, k: int, mesh, fd, cache: dict):
+    """`(GBuffer, visibility keywords)` of view `k`: sphere, mesh (with sec. 6.4 visibility for the sources `fd`) or normal map.
+
+    Normal maps (`geometry.normal_map` or `views[k].normal_map`) give no
+    positions and so no shadows (`jaxsh.normal_map_gbuffer`); each file is
+    read once (`cache`).
+    """
+    view = m["views"][k]
+    cam = camera_from_manifest(view["camera"])
+    geo = m["geometry"]
+    if mesh is not None:
+        g = jaxsh.mesh_gbuffer(cam, mesh)
+        return g, _mesh_visibility(mesh, g, fd)
+    if "sphere" in geo:
+        return jaxsh.sphere_gbuffer(cam, geo["sphere"]["center"], geo["sphere"]["radius"]), {}
+    path = view["normal_map"] or geo["normal_map"]
+    if path not in cache:
+        cache[path] = jio.read_normal_map(path)
+    return jaxsh.normal_map_gbuffer(cam, cache[path]), {}
 
 
 def check_outputs(m: dict, out_dir, names) -> list[str]:
@@ -141,6 +183,7 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
     outs = check_outputs(m, out_dir, [f"view_{k:03d}{ext}" for k in range(n) for ext in (".exr", ".png")])
     b = m["brdf"]
     lmax = m["solve"].get("render_lmax")
+    sigma = b["sigma"] if b["model"] == "torrance_sparrow" else 0.1  # an RBF is lit by directional sources only
     if blocks is None:
         blocks = [m["lighting"]] * n
     cache = {}  # blocks shared by several views (the top-level one) are read once
@@ -148,32 +191,42 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
     def lit_of(k):
         key = id(blocks[k])
         if key not in cache:
-            cache[key] = lighting_from_block(blocks[k], b["sigma"], lmax)
+            cache[key] = lighting_from_block(blocks[k], sigma, lmax)
         return cache[key]
 
     mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
     os.makedirs(out_dir, exist_ok=True)
     written = []
+    maps = {}
     for k, view in enumerate(m["views"]):
         if progress:
             print(f"[{k + 1}/{n}] rendering view {k}", file=sys.stderr, flush=True)
-        cam = camera_from_manifest(view["camera"])
         slow, fd, fe = lit_of(k)
-        if mesh is None:
-            g = jaxsh.sphere_gbuffer(cam, m["geometry"]["sphere"]["center"], m["geometry"]["sphere"]["radius"])
-            extra = {}
+        g, extra = view_geometry(m, k, mesh, fd, maps)
+        if b["model"] == "rbf":
+            img = render_rbf_view(b, g, fd, fe, extra.get("fast_visibility"))
         else:
-            g = jaxsh.mesh_gbuffer(cam, mesh)
-            extra = _mesh_visibility(mesh, g, fd)
-        out = jaxsh.render_practical(
-            g.normal, g.view, b["kd"], b["ks"], b["mu"], b["sigma"], slow_sh=slow,
-            fast_directions=fd, fast_energy=fe, mask=g.mask, **extra,
-        )
-        img = np.asarray(out.total)
+            out = jaxsh.render_practical(
+                g.normal, g.view, b["kd"], b["ks"], b["mu"], b["sigma"], slow_sh=slow,
+                fast_directions=fd, fast_energy=fe, mask=g.mask, **extra,
+            )
+            img = np.asarray(out.total)
         for p in outs[2 * k : 2 * k + 2]:
             jio.write_image(p, img)
             written.append(p)
     return written
+
+
+def render_rbf_view(b: dict, g, fd, fe, fast_visibility=None) -> np.ndarray:
+    """One view under directional sources from an RBF `brdf` block: the sum of `solvers.render_rbf` over the sources."""
+    rbf = b["rbf"]
+    mask = np.asarray(g.mask)
+    xy = pixel_xy(rbf["width"], rbf["height"]) if rbf["spatial"] else None
+    img = np.zeros(mask.shape + (int(rbf["model"].weights.shape[1]),))
+    for j in range(0 if fd is None else len(fd)):
+        vis = mask if fast_visibility is None else mask & (np.asarray(fast_visibility)[..., j] > 0.5)
+        img += np.asarray(render_rbf(rbf["model"], g.normal, g.view, fd[j], fe[j], mask=vis, xy=xy))
+    return img
 
 
 def _mesh_visibility(mesh, g, fd):

@@ -710,29 +710,55 @@ class RBFReflectance(Solution):
         return self
 
     def brdf(self, wi, wo, n, xy=None):
-        if self.spatial and xy is None:
-            raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
-        wi, wo, n = (jnp.asarray(a) for a in (wi, wo, n))
-        shape = jnp.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], n.shape[:-1])
-        if self.spatial:
-            shape = jnp.broadcast_shapes(shape, jnp.shape(xy)[:-1])
-        q = jaxsh.sbrdf_points(_flat(wi, shape, 3), _flat(wo, shape, 3), _flat(n, shape, 3),
-                               _flat(xy, shape, 2) if self.spatial else None)
-        out = self.fit(q)
-        return out.reshape(shape + out.shape[1:])
+        return _rbf_brdf(self.fit.model, self.spatial, wi, wo, n, xy)
 
     def render(self, normal, view, light, irradiance=1.0, mask=None, xy=None):
         """Predicted radiance `(H, W, C)` (or `(H, W)`) for a directional light (Zickler 2006 sec. 8.2)."""
-        if self.spatial and xy is None:
-            raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
-        shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
-        xyf = _flat(xy, shape, 2) if self.spatial else None
-        f = _eval_rendered(lambda a, b, c, q: jnp.maximum(self.brdf(a, b, c, q), 0.0), ok,
-                           _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), xyf)
-        f = f.reshape(shape + f.shape[1:])
-        e = jnp.asarray(irradiance, f.dtype)
-        scale = jnp.where(ok, cos, 0.0)
-        return f * (scale[..., None] * e if f.ndim > len(shape) else scale * e)
+        return render_rbf(self.fit.model, normal, view, light, irradiance, mask, xy)
+
+
+def _rbf_brdf(model, spatial, wi, wo, n, xy):
+    if spatial and xy is None:
+        raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
+    wi, wo, n = (jnp.asarray(a) for a in (wi, wo, n))
+    shape = jnp.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], n.shape[:-1])
+    if spatial:
+        shape = jnp.broadcast_shapes(shape, jnp.shape(xy)[:-1])
+    q = jaxsh.sbrdf_points(_flat(wi, shape, 3), _flat(wo, shape, 3), _flat(n, shape, 3),
+                           _flat(xy, shape, 2) if spatial else None)
+    out = model(q)
+    return out.reshape(shape + out.shape[1:])
+
+
+def render_rbf(model: jaxsh.RBFModel, normal, view, light, irradiance=1.0, mask=None, xy=None):
+    """An image under one directional light from an RBF (S)BRDF model (Zickler 2006 sec. 8.2).
+
+    $I = \\max(\\tilde f, 0)\\,E\\cos\\theta_i$, 0 where $\\cos\\theta_i \\le 0$,
+    $\\cos\\theta_o \\le 0$ or off `mask`; only the rendered pixels are
+    evaluated. `model` is a `jaxsh.RBFModel` over $(u, v, w)$ (3-D, eq. 12)
+    or $(x, y, u, v, w)$ (5-D, eq. 13; then `xy` `(..., 2)` is required) —
+    e.g. `RBFReflectance.fit.model`, or the `"model"` of
+    `jaxsh.io.read_rbf`. Arguments as `RBFReflectance.render`: `normal`
+    `(H, W, 3)`, `view` and `light` `(3,)` or `(H, W, 3)` (towards the camera
+    / the light; the light is normalized), `irradiance` scalar or `(C,)`.
+    """
+    d = int(model.centers.shape[1])
+    if d not in (3, 5):
+        raise ValueError(f"`model` must be an RBF over (u, v, w) or (x, y, u, v, w) points, got d = {d}")
+    spatial = d == 5
+    if spatial and xy is None:
+        raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
+    shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
+    xyf = _flat(xy, shape, 2) if spatial else None
+    f = _eval_rendered(lambda a, b, c, q: jnp.maximum(_rbf_brdf(model, spatial, a, b, c, q), 0.0), ok,
+                       _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), xyf)
+    f = f.reshape(shape + f.shape[1:])
+    e = jnp.asarray(irradiance, f.dtype)
+    scale = jnp.where(ok, cos, 0.0)
+    if f.ndim == len(shape):
+        return f * scale * e
+    e = jnp.broadcast_to(e, f.shape[-1:]).reshape((1,) * len(shape) + f.shape[-1:])  # scalar or (C,)
+    return f * scale[..., None] * e
 
 
 def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothing=0.0, key=None, *, throw: bool = False,

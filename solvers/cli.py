@@ -144,7 +144,10 @@ def _fit(args) -> int:
     b = result["brdf"]
     rel = result["rel_rms"]
     print(f"status {result['status']}, relative RMS {'undefined' if rel is None else f'{rel:.4f}'}")
-    print(f"kd {b['kd']}  ks {b['ks']}  mu {b['mu']}  sigma {b['sigma']}")
+    if b["model"] == "rbf":
+        print(f"RBF reflectance (Zickler 2006 eq. {13 if b['spatial'] else 12}), {b['n_centers']} centres: {b['file']}")
+    else:
+        print(f"kd {b['kd']}  ks {b['ks']}  mu {b['mu']}  sigma {b['sigma']}")
     print(f"results in {args.out}/")
     return 0 if result["status"] in ("converged", "ill_conditioned") else 1
 
