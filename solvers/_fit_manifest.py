@@ -1,13 +1,17 @@
 """`jaxsh fit`: recover what a capture manifest leaves unknown (R&H 2001 sec. 6).
 
-* lighting given, BRDF unknown → `fit_brdf` (sec. 6.1);
+* lighting given, BRDF unknown → `fit_brdf` (sec. 6.1), per texel with
+  `solve.textured` (texture maps written as EXR), or reflectance sharing with
+  `solve.brdf_model` `"sharing"` / `"sharing_spatial"` (Zickler 2006 eq. 12 /
+  13, an RBF `.npz` next to `result.json`);
 * BRDF given, lighting unknown → `inverse_lighting` (sec. 6.2, eq. 25, with the
   known roughness deconvolved so the re-renders use the same model);
 * both unknown → `factorize` (sec. 6.3; $K_d + K_s = 1$ per channel).
 
 Writes `result.json` (docs/results.md), the lighting as a lat-long EXR + PNG,
 and re-renders `view_###.exr/.png` of every view with the recovered values.
-Meshes get the visibility terms of sec. 6.4.
+Meshes get the visibility terms of sec. 6.4; normal maps
+(`jaxsh.normal_map_gbuffer`) give no shadows.
 
 Images are read with their declared `encoding`, their saturated pixels (at or
 above `views[k].saturation`, in the file's units) dropped before the

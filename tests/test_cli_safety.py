@@ -183,7 +183,7 @@ def test_interrupted_result_json(tmp_path, monkeypatch):
     [
         (lambda m: m["views"][0].update(lighting={"directional": 5}),  # views[k].lighting is supported: checked
          ["`views[0].lighting.directional` must be a list"]),
-        (lambda m: m.update(solve={"brdf_model": "sharing"}), ["solve.brdf_model", "not supported yet"]),
+        (lambda m: m.update(solve={"brdf_model": "sharing", "textured": "kd"}), ["solve.textured", "torrance_sparrow"]),
         (lambda m: m["views"][0]["camera"].update(fx=3), ["unknown field `views[0].camera.fx`"]),
         (lambda m: m["views"][0]["camera"].update(width=16.7), ["`views[0].camera.width` must be an integer"]),
         (lambda m: m["lighting"].update(directional=5), ["`lighting.directional` must be a list"]),

@@ -72,7 +72,8 @@ def test_valid_manifest_round_trip(tmp_path):
     assert m["views"][1]["camera"]["fx"] == 20.0 and m["views"][0]["camera"]["width"] == 16
     np.testing.assert_allclose(m["lighting"]["directional"][0]["direction"], [0, 0, 1])
     assert m["solve"] == {"lighting_lmax": 4, "render_lmax": None, "fresnel": True, "saturation": None,
-                          "brdf_model": "torrance_sparrow"}
+                          "brdf_model": "torrance_sparrow", "textured": None, "n_centers": 400, "m_w": 0.3, "m_xy": 0.3,
+                          "tol": None, "min_cos": 0.1, "max_samples": 200000}
     assert m["views"][0]["exposure"] == 1.0 and m["views"][0]["lighting"] is None and m["encoding"] is None
 
 
