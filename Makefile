@@ -36,6 +36,7 @@ bench: $(BIN)/python
 	$(BIN)/python benchmarks/bench_mitsuba.py
 	$(BIN)/python benchmarks/bench_sharing.py
 	$(BIN)/python benchmarks/bench_inverse.py
+	$(BIN)/python benchmarks/bench_capture.py
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .hypothesis

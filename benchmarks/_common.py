@@ -111,3 +111,46 @@ def ratio(t_ours, t_peer):
         return "-"
     r = t_ours / t_peer
     return f"{r:.2f}" if r >= 0.1 else f"{r:.3f}" if r >= 0.001 else f"{r:.1e}"
+
+
+# --------------------------------------------------------------------------- peers in a subprocess
+
+
+class PeerError(RuntimeError):
+    """A peer subprocess failed (crashed, timed out, or wrote no result)."""
+
+
+def run_peer(script, spec, arrays=None, timeout=1800):
+    """Run a peer that cannot share a process with XLA: ``python script IN.npz OUT.npz`` in a subprocess.
+
+    The peer gets ``spec`` (JSON-serialisable, stored as the string ``spec``)
+    and the numpy ``arrays`` in a temporary ``IN.npz``, and writes ``OUT.npz``
+    with a JSON string ``meta`` and any arrays. Returns ``(meta dict, {name:
+    array})``. The subprocess is the same interpreter (``sys.executable``),
+    never imports JAX, and inherits the environment. Raises ``PeerError``
+    with the tail of its output when it exits non-zero (e.g. an LLVM abort)
+    or times out.
+    """
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    import numpy as np
+
+    path = script if os.path.isabs(script) else os.path.join(os.path.dirname(os.path.abspath(__file__)), script)
+    with tempfile.TemporaryDirectory(prefix="jaxsh_peer_") as d:
+        inp, out = os.path.join(d, "in.npz"), os.path.join(d, "out.npz")
+        np.savez(inp, spec=np.asarray(json.dumps(spec)), **(arrays or {}))
+        try:
+            p = subprocess.run([sys.executable, path, inp, out], capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired as e:
+            raise PeerError(f"{os.path.basename(path)} timed out after {timeout} s") from e
+        if p.returncode != 0 or not os.path.exists(out):
+            tail = (p.stdout + p.stderr).strip().splitlines()[-8:]
+            raise PeerError(f"{os.path.basename(path)} exited with status {p.returncode}: " + " | ".join(tail))
+        with np.load(out, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            res = {k: z[k] for k in z.files if k != "meta"}
+    return meta, res

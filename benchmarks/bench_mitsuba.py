@@ -5,6 +5,11 @@ Run from the repository root with the project's venv::
     python benchmarks/bench_mitsuba.py            # default run (~1 min on 2 cores)
     python benchmarks/bench_mitsuba.py --quick    # fewer spp levels
 
+Mitsuba runs in a subprocess (``_mitsuba_peer.py`` via ``_common.run_peer``;
+inputs and images pass through a temporary .npz): importing Mitsuba into a
+process that has loaded XLA crashes LLVM ("Cannot select: fminimum"). All of
+Mitsuba's renders are made by that one subprocess before jaxsh's side runs.
+
 Options: ``--variant {auto,llvm_ad_rgb,scalar_rgb}`` (auto: llvm_ad_rgb if it
 loads, else scalar_rgb; llvm needs libLLVM, e.g. Debian ``libllvm19`` --
 ``DRJIT_LIBLLVM_PATH`` is set to /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
@@ -34,7 +39,7 @@ sun lobe of ~0.08 rad).
   pixel-area averages), at increasing spp. Time = ``mi.render`` wall clock
   (warm: the scene is loaded once and, for the llvm variant, the kernel is
   compiled by a first render that is not counted; min of a few runs for the
-  fast levels).
+  fast levels), measured inside the peer process.
 
 Error metric: RMS over pixels and channels of (x - ref)/ref over the sphere
 pixels whose 3x3 neighbourhood is inside the sphere (a 1-pixel band at the
@@ -76,7 +81,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 
 import jaxsh  # noqa: E402
-from _common import fmt_e, fmt_t, time_jax  # noqa: E402
+from _common import PeerError, fmt_e, fmt_t, run_peer, time_jax  # noqa: E402
 from solvers.synthetic import procedural_sky  # noqa: E402
 
 RES = 96
@@ -86,7 +91,6 @@ SIGMA = 0.1
 SUN_DIR = (0.5, 0.3, 0.81)
 SUN_SIZE = 0.08
 MI_ENV = (513, 1024)  # Mitsuba's node grid for the analytic sky
-LLVM_DEFAULT = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 
 
 # ---------------------------------------------------------------- lighting
@@ -164,50 +168,25 @@ def rms_rel(x, ref, sel):
     return float(np.sqrt(np.mean(r**2)))
 
 
-# ---------------------------------------------------------------- Mitsuba side
+# ---------------------------------------------------------------- Mitsuba side (a subprocess)
 
-def import_mitsuba(variant):
-    if "DRJIT_LIBLLVM_PATH" not in os.environ and os.path.exists(LLVM_DEFAULT):
-        os.environ["DRJIT_LIBLLVM_PATH"] = LLVM_DEFAULT
-    try:
-        import mitsuba as mi
-    except Exception as e:  # noqa: BLE001
-        return None, f"import failed: {type(e).__name__}: {e}"
-    tried = ["llvm_ad_rgb", "scalar_rgb"] if variant == "auto" else [variant]
-    errs = []
-    for v in tried:
-        try:
-            mi.set_variant(v)
-            # a tiny render proves the variant works (llvm needs libLLVM at run time)
-            mi.render(mi.load_dict({"type": "scene", "integrator": {"type": "direct"}, "sensor": {"type": "orthographic", "film": {"type": "hdrfilm", "width": 4, "height": 4}}}), spp=1)
-            return mi, v
-        except Exception as e:  # noqa: BLE001
-            errs.append(f"{v}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
-    return None, "; ".join(errs)
+def mitsuba_peer(args, env_sun_nodes, env_naive, env_nodes, spps):
+    """Every Mitsuba render of this benchmark, in one subprocess (``_mitsuba_peer.py``; see the module docstring).
 
-
-def mitsuba_scene(mi, env_nodes, to_world=None):
-    T = mi.ScalarTransform4f
-    emitter = {"type": "envmap", "bitmap": mi.Bitmap(env_nodes)}
-    if to_world is not None:
-        emitter["to_world"] = to_world
-    return mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 2, "hide_emitters": True},
-        "sensor": {
-            "type": "orthographic",
-            "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]) @ T().scale([HALF, HALF, 1.0]),
-            "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-            "sampler": {"type": "independent", "sample_count": 1},
-        },
-        "sphere": {"type": "sphere", "center": [0, 0, 0], "radius": 1.0,
-                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": (np.pi * KD).tolist()}}},
-        "env": emitter,
-    })
-
-
-def mi_render(mi, scene, spp, seed):
-    return np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)[..., :3]
+    Returns ``(meta, images)`` from ``_common.run_peer``.
+    """
+    params = {"half": HALF, "res": RES, "reflectance": (np.pi * KD).tolist()}
+    jobs = [
+        {"name": "sun", "scene": "env_sphere", "params": dict(params, env="env_sun"),
+         "renders": [{"spp": 256, "seeds": [args.seed], "keep": True}]},
+        {"name": "naive", "scene": "env_sphere", "params": dict(params, env="env_naive"),
+         "renders": [{"spp": 256, "seeds": [args.seed], "keep": True}]},
+        {"name": "main", "scene": "env_sphere", "params": dict(params, env="env"), "warmup_spp": 1,
+         "renders": [{"spp": spp, "seeds": [args.seed + 1000 * k + r for r in range(3 if spp <= 64 else 1)], "keep": True}
+                     for k, spp in enumerate(spps)]},
+    ]
+    return run_peer("_mitsuba_peer.py", {"variant": args.variant, "jobs": jobs},
+                    {"env_sun": env_sun_nodes, "env_naive": env_naive, "env": env_nodes})
 
 
 def brightest(img, sel):
@@ -232,12 +211,26 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    mi, variant = import_mitsuba(args.variant)
-    if mi is None:
-        print(f"Mitsuba not available: {variant}")
+    max_spp = args.max_spp or (256 if args.quick else 4096)
+    spps = [s for s in (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192) if s <= max_spp]
+    s_test = (0.55, -0.45, 0.70)
+    env_sun = jaxsh_map(64, 128, sun_dir=s_test, sun_size=0.1, sky=False)
+    t0 = time.perf_counter()
+    try:
+        meta, mimg = mitsuba_peer(args, mitsuba_node_map(*MI_ENV, sun_dir=s_test, sun_size=0.1, sky=False),
+                                  env_sun.astype(np.float32), mitsuba_node_map(*MI_ENV), spps)
+    except PeerError as e:
+        print(f"Mitsuba peer failed: {e}")
+        return 1
+    t_peer = time.perf_counter() - t0
+    if not meta["ok"]:
+        print(f"Mitsuba not available: {meta['error']}")
         return 0
-    print(f"mitsuba {mi.__version__} variant {variant}; jax {jax.__version__} on {jax.devices()[0].platform}; "
-          f"{os.cpu_count()} CPUs")
+    variant = meta["variant"]
+    if meta.get("variants_rejected"):
+        print(f"Mitsuba variants rejected by a probe in a child process: {meta['variants_rejected']}")
+    print(f"mitsuba {meta['version']} variant {variant} (in a subprocess: {fmt_t(t_peer)} for all its renders); "
+          f"jax {jax.__version__} on {jax.devices()[0].platform}; {os.cpu_count()} CPUs; load average {os.getloadavg()}")
 
     # ---- scene, jaxsh side
     gb64 = gbuffer(jnp.float64)
@@ -248,15 +241,11 @@ def main():
     assert np.allclose(env, np.asarray(procedural_sky(64, 128)), rtol=1e-12, atol=1e-12), \
         "sky_radiance() no longer matches solvers.synthetic.procedural_sky"
 
-    # ---- convention check: sun lobe only, off-axis
-    s_test = (0.55, -0.45, 0.70)
+    # ---- convention check: sun lobe only, off-axis (Mitsuba's renders came from the peer)
     t0 = time.perf_counter()
-    env_sun = jaxsh_map(64, 128, sun_dir=s_test, sun_size=0.1, sky=False)
     ref_sun = reference(gb64, env_sun)
-    sc = mitsuba_scene(mi, mitsuba_node_map(*MI_ENV, sun_dir=s_test, sun_size=0.1, sky=False))
-    img_sun = mi_render(mi, sc, 256, args.seed)
-    naive = mitsuba_scene(mi, env_sun.astype(np.float32))  # jaxsh's image handed over as is
-    img_naive = mi_render(mi, naive, 256, args.seed)
+    img_sun = mimg["sun/0"]
+    img_naive = mimg["naive/0"]  # jaxsh's image handed over as is
     ex = expected_pixel(s_test)
     print(f"\nConvention check (diffuse sphere, sun lobe only at {s_test}; "
           f"centroid of the bright spot (row, col), sun-facing pixel ~({ex[0]:.1f}, {ex[1]:.1f})):")
@@ -303,27 +292,15 @@ def main():
         rows_j.append((lmax, warm, err))
         print(f"  lmax {lmax}: first {fmt_t(first)}, warm {fmt_t(warm)}, RMS rel err {fmt_e(err)}", flush=True)
 
-    # ---- Mitsuba at increasing spp
-    t0 = time.perf_counter()
-    scene = mitsuba_scene(mi, mitsuba_node_map(*MI_ENV))
-    t_load = time.perf_counter() - t0
-    mi_render(mi, scene, 1, args.seed)  # compile / warm-up (llvm)
-    max_spp = args.max_spp or (256 if args.quick else 4096)
-    spps = [s for s in (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192) if s <= max_spp]
+    # ---- Mitsuba at increasing spp (rendered by the peer above)
+    info = meta["jobs"]["main"]
     print(f"\nMitsuba ({variant}, path max_depth=2, envmap {MI_ENV[0]}x{MI_ENV[1]} nodes, box filter); "
-          f"scene load {fmt_t(t_load)} (not counted):")
+          f"scene load {fmt_t(info['load_s'])} (not counted):")
     rows_m = []
-    for k, spp in enumerate(spps):
-        ts, imgs = [], None
-        reps = 3 if spp <= 64 else 1
-        for r in range(reps):
-            t1 = time.perf_counter()
-            img = mi_render(mi, scene, spp, args.seed + 1000 * k + r)
-            ts.append(time.perf_counter() - t1)
-            imgs = img
-        err = rms_rel(imgs, ref, sel)
-        rows_m.append((spp, min(ts), err))
-        print(f"  spp {spp:5d}: {fmt_t(min(ts))}, RMS rel err {fmt_e(err)}", flush=True)
+    for k, (spp, r) in enumerate(zip(spps, info["renders"])):
+        err = rms_rel(mimg[f"main/{k}"], ref, sel)
+        rows_m.append((spp, min(r["times"]), err))
+        print(f"  spp {spp:5d}: {fmt_t(min(r['times']))}, RMS rel err {fmt_e(err)}", flush=True)
 
     # fit err ~ a / sqrt(spp) on the levels well above the reference floor
     spp_a = np.array([r[0] for r in rows_m], float)

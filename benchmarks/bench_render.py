@@ -32,8 +32,9 @@ timed once warm, after its first call):
    ``disk_light_sh``, lmax 40). The RMS relative error of practical vs
    reference over the lit pixels (reference > 1% of its maximum) is printed.
 
-Peer: Mitsuba 3 (if ``import mitsuba`` works; the script never installs it,
-otherwise a line says why it was not measured) renders the same 512x512
+Peer: Mitsuba 3, in a subprocess (``_mitsuba_peer.py``: Mitsuba's LLVM cannot
+share a process with XLA's); if ``import mitsuba`` fails there, a line says why
+it was not measured (the script never installs it). It renders the same 512x512
 sphere under the same sky (envmap emitter) and sun with the ``direct``
 integrator, 16 spp, ``roughplastic`` Beckmann alpha = sigma (llvm_ad_rgb
 variant if available). This is a timing peer, not a pixel comparison: the
@@ -72,13 +73,10 @@ from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
 
 from solvers.synthetic import procedural_sky  # noqa: E402
 
-try:
-    import mitsuba  # noqa: F401
+from _common import PeerError, run_peer  # noqa: E402
 
-    MITSUBA_ERR = None
-except Exception as e:  # pragma: no cover
-    mitsuba = None
-    MITSUBA_ERR = f"{type(e).__name__}: {e}"
+# Mitsuba is never imported here: loading Dr.Jit's LLVM into a process that has loaded XLA crashes LLVM
+# ("Cannot select: fminimum"). It runs in a subprocess (benchmarks/_mitsuba_peer.py via _common.run_peer).
 
 # Material and lighting shared by all scenes.
 KD = jnp.array([0.45, 0.35, 0.25])
@@ -140,46 +138,42 @@ def bench_sphere(tab, n, sky_hw):
             f"{npx / t_warm / 1e6:.2f} Mpx/s")
     t_warm = t_warm + t_gb
     tab.add(f"sphere {n}x{n}", "G-buffer + render_practical", fmt_t(t_warm), "", "sum of the warm rows")
-    if mitsuba is not None:
-        try:
-            bench_mitsuba(tab, n, sky, t_warm)
-        except Exception as e:  # pragma: no cover
-            print(f"Mitsuba peer failed: {type(e).__name__}: {e}")
+    bench_mitsuba(tab, n, sky, t_warm)
     return slow
 
 
 def bench_mitsuba(tab, n, sky, t_ours, spp=16):
-    """Mitsuba 3 peer: the same sphere, sky (envmap emitter) and sun, direct illumination only.
+    """Mitsuba 3 peer, in a subprocess: the same sphere, sky (envmap emitter) and sun, direct illumination only.
 
     Not a pixel comparison: Mitsuba's ``roughplastic`` (Beckmann, alpha = sigma,
     ior 1.5) is close to but not the same BRDF, its envmap is +y up (the sky is
     not re-oriented), and the image is Monte Carlo (``spp`` samples per pixel,
     ``direct`` integrator, i.e. one bounce, no inter-reflection as in jaxsh).
+    Timing as ``_common.time_np``: the first render (incl. the llvm kernel
+    compile), then the minimum of 3 renders after a warm-up one, all inside
+    the peer process (the subprocess start and scene load are not counted).
     """
-    mi = mitsuba
-    for var in ("llvm_ad_rgb", "scalar_rgb"):
-        try:
-            mi.set_variant(var)
-            break
-        except Exception:
-            continue
-    T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "direct"},
-        "sensor": {"type": "orthographic",
-                   "to_world": T().look_at(origin=[0, -5, 1.5], target=[0, 0, 0], up=[0, 0, 1]) @ T().scale([1.1, 1.1, 1]),
-                   "film": {"type": "hdrfilm", "width": n, "height": n, "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "sphere": {"type": "sphere", "bsdf": {"type": "roughplastic", "distribution": "beckmann", "alpha": SIGMA,
-                                              "int_ior": MU}},
-        "env": {"type": "envmap", "bitmap": mi.Bitmap(np.array(sky, dtype=np.float32, copy=True))},
-        "sun": {"type": "directional", "direction": (-SUN_DIR).tolist(),
-                "irradiance": {"type": "rgb", "value": np.asarray(SUN_E)[0].tolist()}},
-    })
-    t_first, t_warm = time_np(lambda: np.asarray(mi.render(scene, spp=spp)), repeats=3)
-    tab.add(f"sphere {n}x{n}", f"Mitsuba {mi.__version__} [{mi.variant()}] direct, {spp} spp",
+    spec = {"variant": "auto", "jobs": [{
+        "name": "sphere", "scene": "sky_sun_sphere",
+        "params": {"n": n, "spp": spp, "alpha": SIGMA, "ior": MU, "sun_to": (-SUN_DIR).tolist(),
+                   "sun_irradiance": np.asarray(SUN_E)[0].tolist(), "sky": "sky"},
+        "renders": [{"spp": spp, "seeds": [0]}, {"spp": spp, "seeds": [0, 0, 0, 0]}]}]}
+    try:
+        meta, _ = run_peer("_mitsuba_peer.py", spec, {"sky": np.asarray(sky, np.float32)})
+    except PeerError as e:
+        print(f"Mitsuba peer failed: {e}")
+        return None
+    if not meta["ok"]:
+        print(f"Mitsuba 3 was NOT measured: {meta['error']}; this script does not install it, "
+              "so there is no peer renderer in this run.")
+        return None
+    if meta.get("variants_rejected"):
+        print(f"Mitsuba variants rejected by a probe in a child process: {meta['variants_rejected']}")
+    r = meta["jobs"]["sphere"]["renders"]
+    t_first, t_warm = r[0]["times"][0], min(r[1]["times"][1:])
+    tab.add(f"sphere {n}x{n}", f"Mitsuba {meta['version']} [{meta['variant']}] direct, {spp} spp (subprocess)",
             fmt_t(t_warm), fmt_t(t_first), f"jaxsh/Mitsuba (warm) = {ratio(t_ours, t_warm)}")
+    return t_warm
 
 
 def bench_mesh(tab, n, slow, n_rays):
@@ -276,9 +270,6 @@ def main():
         pass
     print(f"float64 (jax_enable_x64 = {jax.config.jax_enable_x64}); material kd={np.asarray(KD).tolist()}, "
           f"ks={np.asarray(KS).tolist()}, mu={MU}, sigma={SIGMA}")
-    if mitsuba is None:
-        print(f"Mitsuba 3 was NOT measured: `import mitsuba` fails in this environment ({MITSUBA_ERR}); "
-              "this script does not install it, so there is no peer renderer in this run.")
     t_all = time.perf_counter()
     tab = Table("Forward rendering (jaxsh, CPU, float64)", ["scene", "step", "warm", "first", "note"])
     slow = bench_sphere(tab, 256 if q else 512, (128, 256) if q else (256, 512))
@@ -287,7 +278,7 @@ def main():
     tab.sep()
     bench_reference(tab, 48 if q else 96, (24, 48) if q else (48, 96))
     tab.show()
-    if mitsuba is not None:
+    if any("Mitsuba" in (r[1] if r else "") for r in tab.rows):
         print("Mitsuba row: timing peer only (Monte Carlo, roughplastic BRDF, envmap not re-oriented); "
               "the ratio compares jaxsh's G-buffer + practical model with Mitsuba's render of the same sphere.")
     print(f"total wall time {time.perf_counter() - t_all:.1f} s")
