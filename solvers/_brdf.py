@@ -251,8 +251,8 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         r, _aux = profiled(uc)
         return (jnp.sum(r * r) + wall * jnp.sum((u - uc) ** 2)).astype(pdt)
 
-    # Start: best grid point (vmapped), then the simplex of R&H sec. 6.1.
-    grid_vals = jax.vmap(lambda u: objective(u, None))(u_grid.astype(pdt))
+    # Start: best grid point (evaluated one at a time), then the simplex of R&H sec. 6.1. Memory O(N): `lax.map`, not a vmap over the grid.
+    grid_vals = jax.lax.map(lambda u: objective(u, None), u_grid.astype(pdt))
     u0 = u_grid.astype(pdt)[jnp.argmin(jnp.where(jnp.isfinite(grid_vals), grid_vals, jnp.inf))]
     nm = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), u0, max_steps=max_steps, throw=False)
     u = jnp.clip(nm.value.astype(dt), lo, hi)

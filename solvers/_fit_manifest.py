@@ -35,7 +35,7 @@ import jaxsh
 from jaxsh import io as jio
 
 from ._brdf import fit_brdf
-from ._data import Lighting, TorranceSparrow, observations, predict, status_name
+from ._data import Lighting, TorranceSparrow, observations, practical_terms_for, predict, status_name
 from ._factorize import factorize
 from ._lighting import inverse_lighting
 from ._render_manifest import (
@@ -200,9 +200,21 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         texel = np.arange(hh * ww, dtype=np.int32).reshape(hh, ww)
         vis["texel"] = [texel] * n
         vis["n_texels"] = hh * ww
-    obs = observations(gbs, imgs, masks=masks, saturation=solve.get("saturation"), **vis)
+    if known is not None:
+        # Every object pixel is a sample, the invalid ones (masked, clipped) with weight 0: the fit is the same,
+        # views sharing a camera get the same pixel count (one compiled program for all of them), and the
+        # re-renders below reuse the fit's eq. 24 terms instead of compiling a renderer.
+        sat = solve.get("saturation")
+        valid = [mk & (np.all(im < sat, -1) if sat is not None else True) for mk, im in zip(masks, imgs)]
+        imgs = [np.where(v[..., None], im, 0.0) for v, im in zip(valid, imgs)]
+        obs = observations(gbs, imgs, masks=[np.asarray(g.mask) for g in gbs],
+                           weights=[v.astype(np.float64) for v in valid], **vis)
+        n_valid = int(sum(np.count_nonzero(v & np.asarray(g.mask)) for v, g in zip(valid, gbs)))
+    else:
+        obs = observations(gbs, imgs, masks=masks, saturation=solve.get("saturation"), **vis)
+        n_valid = obs.n_samples
     timings["setup"] = time.perf_counter() - t
-    say(f"{obs.n_samples} valid pixels in {len(gbs)} views")
+    say(f"{n_valid} valid pixels in {len(gbs)} views")
     t = time.perf_counter()
     std = None
     if known is not None:
@@ -238,9 +250,14 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
 
     t = time.perf_counter()
     _write_lighting(out, display_sh, lmax)
-    for k, g in enumerate(gbs):
-        lit_k = lighting if per_view is None else per_view[k]
-        img = np.asarray(predict(brdf, lit_k, g.normal, g.view, mask=g.mask, texel=texel, **extras[k]))
+    if known is not None:  # eq. 24 at the fitted BRDF from the fit's own terms (same shapes: no new program)
+        terms = practical_terms_for(obs, known if per_view is None else per_view)
+        rows = (lambda a: a) if textured is None else (lambda a: a[obs.texel] if np.ndim(a) == 2 else a)  # noqa: E731
+        renders = obs.to_images(np.asarray(terms(rows(brdf.kd), rows(brdf.ks), brdf.mu, brdf.sigma)))
+    else:
+        renders = [np.asarray(predict(brdf, lighting if per_view is None else per_view[k], g.normal, g.view,
+                                      mask=g.mask, **extras[k])) for k, g in enumerate(gbs)]
+    for k, img in enumerate(renders):
         jio.write_image(out(f"view_{k:03d}.exr"), img)
         jio.write_image(out(f"view_{k:03d}.png"), img)
     brdf_json = _brdf_json(brdf)

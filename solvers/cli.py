@@ -163,6 +163,49 @@ def _render(args) -> int:
     return 0
 
 
+def cache_dir() -> str | None:
+    """The persistent XLA compilation cache of the command line, or None when it is off.
+
+    `$JAXSH_CACHE_DIR`, else `$XDG_CACHE_HOME/jaxsh/xla`, else `~/.cache/jaxsh/xla`;
+    `JAXSH_NO_CACHE=1` turns it off.
+    """
+    if os.environ.get("JAXSH_NO_CACHE"):
+        return None
+    d = os.environ.get("JAXSH_CACHE_DIR")
+    if not d:
+        d = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxsh", "xla")
+    return d
+
+
+def _enable_cache() -> None:
+    """Turn on JAX's persistent compilation cache for this process (the command line's own configuration;
+    the library never changes `jax.config`). A second run of the same command reuses the compiled programs."""
+    d = cache_dir()
+    if d is None:
+        return
+    try:
+        os.makedirs(d, exist_ok=True)
+    except OSError:
+        return  # a read-only home: run without the cache
+    if "EQX_ON_ERROR" not in os.environ:
+        # XLA programs with host callbacks are never cached, and `equinox.error_if` raises through one.
+        # The commands validate the manifest and every input before any work, so a run-time check cannot
+        # fire on them; in "nan" mode a check that did would give NaN, which the solvers report as status
+        # `nonfinite` (exit 1) — never a silent number. An explicit EQX_ON_ERROR is respected. equinox reads
+        # the mode at import (the `solvers` package has imported it by now) and at each call from
+        # `equinox._errors.EQX_ON_ERROR`; if that changes in a future equinox, the programs with checks are
+        # simply not cached.
+        os.environ["EQX_ON_ERROR"] = "nan"
+        errors = sys.modules.get("equinox._errors")
+        if errors is not None and getattr(errors, "EQX_ON_ERROR", None) == "raise":
+            errors.EQX_ON_ERROR = "nan"
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", d)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
 def _one_line(e: BaseException) -> str:
     msg = " ".join(str(e).split()) or type(e).__name__
     if isinstance(e, OSError) and e.filename is not None and os.fspath(e.filename) not in msg:
@@ -170,7 +213,9 @@ def _one_line(e: BaseException) -> str:
     return msg
 
 
-def main(argv=None) -> int:
+def main(argv=None, *, cache: bool | None = None) -> int:
+    """Run the command line. `cache` (default: on for a real command line, `argv is None`; off when called
+    with an explicit `argv`, e.g. from tests) turns on the persistent compilation cache (`cache_dir`)."""
     parser = argparse.ArgumentParser(prog="jaxsh", description="Signal-processing inverse rendering in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("demo", help="run the end-to-end synthetic inverse-rendering pipeline (no input files)")
@@ -191,6 +236,8 @@ def main(argv=None) -> int:
     q.add_argument("--out", default="render_out", help="output directory (view_000.exr/.png, ...)")
     q.set_defaults(func=_render)
     args = parser.parse_args(argv)
+    if (argv is None) if cache is None else cache:
+        _enable_cache()
     # Every error is one line naming the file and the field: exit 2 for bad input (manifest, files,
     # options, --out), 1 for anything else that fails; a failed solve returns 1 from its command.
     # JAXSH_TRACEBACK=1 lets exceptions through, for debugging.
