@@ -346,6 +346,23 @@ def _linear_to_srgb(x):
 # ----------------------------------------------------------------------------- normal maps
 
 
+def _read_float_array(path: str, what: str, plural: str) -> np.ndarray:
+    """A float64 array from `.npy` or a float image (EXR, PFM, float TIFF); integer images are refused."""
+    _check_readable(path, what)
+    if path.lower().endswith(".npy"):
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"cannot read {what} {path!r}: {e}") from None
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise ValueError(f"{what} {path!r}: dtype must be float, got {arr.dtype}")
+    else:
+        arr, info = _read_pixels(path)
+        if not info["float"]:
+            raise ValueError(f"{what} {path!r}: {info['bits']}-bit integer images are not {plural}; use EXR, PFM or .npy")
+    return np.asarray(arr, np.float64)
+
+
 def read_normal_map(path) -> np.ndarray:
     """Read a world-frame normal map `(H, W, 3)` (EXR, PFM or `.npy`).
 
@@ -358,19 +375,7 @@ def read_normal_map(path) -> np.ndarray:
     Raises `FileNotFoundError` / `ValueError` naming the file.
     """
     path = os.fspath(path)
-    _check_readable(path, "normal map")
-    if path.lower().endswith(".npy"):
-        try:
-            arr = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            raise ValueError(f"cannot read normal map {path!r}: {e}") from None
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-            raise ValueError(f"normal map {path!r}: dtype must be float, got {arr.dtype}")
-    else:
-        arr, info = _read_pixels(path)
-        if not info["float"]:
-            raise ValueError(f"normal map {path!r}: {info['bits']}-bit integer images are not normal maps; use EXR, PFM or .npy")
-    arr = np.asarray(arr, np.float64)
+    arr = _read_float_array(path, "normal map", "normal maps")
     if arr.ndim != 3 or arr.shape[-1] != 3:
         raise ValueError(f"normal map {path!r} must have shape (H, W, 3), got {arr.shape}")
     bad = int(np.count_nonzero(~np.isfinite(arr).all(-1)))
@@ -399,20 +404,7 @@ def read_texture(path, channels: int = 3) -> np.ndarray:
     `ValueError` naming the file.
     """
     path = os.fspath(path)
-    _check_readable(path, "texture map")
-    if path.lower().endswith(".npy"):
-        try:
-            arr = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            raise ValueError(f"cannot read texture map {path!r}: {e}") from None
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-            raise ValueError(f"texture map {path!r}: dtype must be float, got {arr.dtype}")
-    else:
-        arr, info = _read_pixels(path)
-        if not info["float"]:
-            raise ValueError(f"texture map {path!r}: {info['bits']}-bit integer images are not parameter maps; "
-                             "use EXR, PFM or .npy")
-    arr = np.asarray(arr, np.float64)
+    arr = _read_float_array(path, "texture map", "parameter maps")
     if arr.ndim == 2:
         arr = arr[..., None]
     if arr.ndim != 3 or arr.shape[-1] < channels:

@@ -55,3 +55,14 @@ def random_rotation(rng, shape=()):
 
 def is_x64(x):
     return np.dtype(x.dtype) in (np.float64, np.complex128)
+
+
+def write_png16(path, img):
+    """Write `img` (values in [0, 1]) as a 16-bit PNG of linear code values (as machine-vision cameras do)."""
+    import OpenImageIO as oiio
+
+    code = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(code.shape[1], code.shape[0], code.shape[2], "uint16"))
+    assert out.write_image(code)
+    out.close()

@@ -7,6 +7,8 @@ import pytest
 import jaxsh
 import solvers
 
+from .helpers import write_png16
+
 C2W = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]], float)  # looks down -z
 TRUE = jaxsh.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.35, 0.4]), 1.5, 0.2)
 
@@ -225,16 +227,6 @@ def test_fit_brdf_sh_per_view_lighting(rng):
 HALF = (0.5, 0.5, 0.5)
 
 
-def _write_png16(path, img):
-    import OpenImageIO as oiio
-
-    code = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), oiio.ImageSpec(code.shape[1], code.shape[0], code.shape[2], "uint16"))
-    assert out.write_image(code)
-    out.close()
-
-
 def test_cli_photometric_capture_fit_then_render_held_out(tmp_path):
     """A photometric capture on disk (orthographic camera, sphere, 8 lights, one per 16-bit linear PNG, images
     by the reference renderer): `jaxsh fit` -> result.json -> `jaxsh render` of a held-out light."""
@@ -252,7 +244,7 @@ def test_cli_photometric_capture_fit_then_render_held_out(tmp_path):
     for k, d in enumerate(dirs):
         img = np.asarray(jaxsh.render_reference(g.normal, g.view, TRUE, _one_light(d, HALF))) * mask[..., None]
         assert img.max() < 0.95  # no clipping in the 16-bit file
-        _write_png16(tmp_path / f"img_{k:03d}.png", img)
+        write_png16(tmp_path / f"img_{k:03d}.png", img)
         views.append({"image": f"img_{k:03d}.png", "camera": cam,
                       "lighting": {"directional": [{"direction": d.tolist(), "radiance": 0.5}]}})
     fit_m = {"geometry": {"sphere": {"center": [0, 0, 0], "radius": 1}}, "encoding": "linear", "views": views,

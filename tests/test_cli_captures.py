@@ -17,6 +17,8 @@ import jaxsh.io
 import solvers
 from solvers.cli import main
 
+from .helpers import write_png16
+
 N = 32  # image size: the sphere covers ~650 pixels
 C2W = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]], float)  # looks down -z
 CAM = {"model": "orthographic", "scale": 2.2 / N, "width": N, "height": N, "cam_to_world": C2W.tolist()}
@@ -53,16 +55,6 @@ def _reference(g, d, kd=None):
     return np.asarray(jaxsh.render_reference(g.normal, g.view, brdf, lit)) * np.asarray(g.mask)[..., None]
 
 
-def _write_png16(path, img):
-    import OpenImageIO as oiio
-
-    code = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), oiio.ImageSpec(code.shape[1], code.shape[0], code.shape[2], "uint16"))
-    assert out.write_image(code)
-    out.close()
-
-
 def _rel(got, want, mask):
     return float(np.sqrt(np.mean((got[mask] - want[mask]) ** 2) / np.mean(want[mask] ** 2)))
 
@@ -82,7 +74,7 @@ def capture(tmp_path_factory):
     for k, d in enumerate(FIT):
         img = _reference(g, d)
         assert img.max() < 0.95  # nothing clips in the 16-bit file
-        _write_png16(root / f"img_{k:03d}.png", img)
+        write_png16(root / f"img_{k:03d}.png", img)
         jaxsh.io.write_image(root / f"tex_{k:03d}.exr", _reference(g, d, tex))
     return root, g, tex
 
@@ -118,7 +110,7 @@ def test_torrance_sparrow_from_a_mesh_normal_map(tmp_path):
     jaxsh.io.write_image(tmp_path / "normals.exr", np.asarray(g.normal))
     views = []
     for k, d in enumerate(FIT):
-        _write_png16(tmp_path / f"img_{k:03d}.png", _reference(g, d))
+        write_png16(tmp_path / f"img_{k:03d}.png", _reference(g, d))
         views.append(_view(f"img_{k:03d}.png", d))
     result = _fit(tmp_path, "fit", views)
     assert result["status"] == "converged"
