@@ -9,7 +9,7 @@ orthogonal (real basis) or unitary (complex basis). The $l = 1$ real block
 is $R$ itself with rows and columns permuted to the order $(y, z, x)$ of
 $m = -1, 0, 1$.
 
-The real blocks are built directly from the entries of $R$ by the
+`wigner_D` builds the real blocks directly from the entries of $R$ by the
 recurrence of Ivanic & Ruedenberg (1996, with the 1998 erratum): block
 $l$ is a fixed linear combination of products of the $l = 1$ block with
 block $l-1$. Everything is a polynomial in the entries of $R$ — no Euler
@@ -17,6 +17,21 @@ angles, so no singularity at β = 0 or π, and derivatives with respect to
 $R$ are exact everywhere. Cost $O(l_{max}^3)$ per rotation, batched over any
 leading shape of `R`. Accuracy (float64): orthogonality error ~1e-14 at
 $l_{max} = 64$.
+
+`rotate_sh` never forms $D$. It factors the rotation with fixed tables
+(the "J-matrix" method, as in SHTOOLS' `djpi2` + `SHRotateRealCoef`):
+$D(R_z(\\alpha)R_y(\\beta)R_z(\\gamma)) = Z(\\alpha-\\tfrac\\pi2)\\,J^{\\mathsf T}\\,Z(\\beta)\\,J\\,Z(\\gamma+\\tfrac\\pi2)$,
+with $J = D(R_y(\\pi/2))$ tabulated once per `lmax` (float64, NumPy, from the
+recurrence above) and $Z(t) = D(R_z(t))$, which only mixes $c_{l,m}$ with
+$c_{l,-m}$ by $\\cos mt$, $\\sin mt$. $J$ keeps cos-type ($m \\ge 0$) and
+sin-type ($m < 0$) coefficients apart, so each step is one elementwise
+product or one batched matrix product over the bands. The Euler angles are
+read from $R$ without dividing by $\\sin\\beta$ (`_euler_zyz`), so β = 0, π
+and their neighbourhoods are as accurate as anywhere else (float64 error
+~1e-13 at $l_{max} = 32$). Derivatives with respect to $R$ do not go through
+the angles: $D(R + dR) \\approx D(R)\\,(1 + \\sum_k \\omega_k G_k)$ with $\\omega$
+the axial vector of $R^{\\mathsf T}dR$ and $G_k$ the fixed generators, which is
+exact at every $R$ (gimbal lock included) for $dR$ tangent to the rotations.
 
 ??? cite "References"
     Ivanic, J., Ruedenberg, K. (1996). Rotation matrices for real spherical
@@ -28,6 +43,7 @@ $l_{max} = 64$.
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -89,17 +105,18 @@ def _ir_tables(l: int):
     return terms
 
 
-def _real_blocks_minor(r, lmax: int) -> list:
+def _real_blocks_minor(r, lmax: int, xp=jnp) -> list:
     """Real Wigner blocks with the batch axes last: D^l of shape (2l+1, 2l+1, *batch).
 
     Batch-minor layout keeps every operation vectorized along the batch
-    (the blocks themselves are tiny), which is what makes 10^4 rotations fast.
-    `r` is (3, 3, *batch).
+    (the blocks themselves are tiny). `r` is (3, 3, *batch). `xp=np` runs the
+    same recurrence in NumPy (float64, at trace time) for the fixed tables of
+    `rotate_sh`.
     """
     batch = r.shape[2:]
     dtype = r.dtype
     trail = (1,) * len(batch)
-    blocks = [jnp.ones((1, 1) + batch, dtype)]
+    blocks = [xp.ones((1, 1) + batch, dtype)]
     if lmax == 0:
         return blocks
     r1 = r[_PERM[:, None], _PERM[None, :]]
@@ -113,10 +130,10 @@ def _real_blocks_minor(r, lmax: int) -> list:
             rm, r0, rp = r1[i + 1, 0][None, None], r1[i + 1, 1][None, None], r1[i + 1, 2][None, None]
             col_pos = rp * last - rm * first
             col_neg = rp * first + rm * last
-            qs[i] = jnp.concatenate([col_neg, r0 * prev, col_pos], axis=1)  # (2l-1, 2l+1, *batch)
+            qs[i] = xp.concatenate([col_neg, r0 * prev, col_pos], axis=1)  # (2l-1, 2l+1, *batch)
         out = None
         for q, rows, coef in _ir_tables(l):
-            term = qs[q][rows] * jnp.asarray(coef, dtype).reshape(coef.shape + trail)
+            term = qs[q][rows] * xp.asarray(coef, dtype).reshape(coef.shape + trail)
             out = term if out is None else out + term
         blocks.append(out)
         prev = out
@@ -216,8 +233,20 @@ def rotate_sh(
 ) -> Float[Array, "..."]:
     """Rotate a real SH expansion: the coefficients of $f(R^{\\mathsf T}\\omega)$.
 
-    Equal to `wigner_D(R, lmax) @ coeffs`, applied block by block (the dense
-    matrix is never formed). Batch dimensions of `coeffs` and `R` broadcast.
+    Equal to `wigner_D(R, lmax) @ coeffs`; the matrix is never formed. The
+    rotation is applied as $Z(\\alpha-\\tfrac\\pi2)\\,J^{\\mathsf T}Z(\\beta)\\,J\\,Z(\\gamma+\\tfrac\\pi2)$
+    with fixed per-band tables $J = D(R_y(\\pi/2))$ and the ZYZ angles of `R`
+    read without dividing by $\\sin\\beta$ (module docstring): $O(l_{max}^3)$
+    per rotation as batched matrix products, accurate at and near β = 0, π.
+    Batch dimensions of `coeffs` and `R` broadcast; one `R` for many vectors
+    costs one rotation with many channels.
+
+    Derivatives: exact with respect to `coeffs`; with respect to `R`, along
+    the rotations, $\\partial_t D(R e^{t\\Omega}) = D(R)\\sum_k\\omega_k G_k$, at
+    every `R` (the identity and β = π included). A component of a tangent
+    `dR` that leaves the rotations (the symmetric part of $R^{\\mathsf T}dR$) is
+    ignored, so a gradient with respect to a raw `R` is the one of $D$
+    restricted to SO(3); `wigner_D` differentiates its polynomial in `R` instead.
 
     **Arguments:**
 
@@ -248,19 +277,227 @@ def rotate_sh(
 
 @eqx.filter_jit
 def _rotate(c, R, lmax, batch):
-    # Batch-minor: blocks (2l+1, 2l+1, *batch), coefficients (n, C, *batch).
-    nb = len(batch)
-    R = jnp.broadcast_to(R, batch + (3, 3))
-    c = jnp.broadcast_to(c, batch + c.shape[-2:])
-    blocks = _real_blocks_minor(_to_minor(R), lmax)
-    cm = jnp.moveaxis(c, (-2, -1), (0, 1))
-    outs = []
+    # c (..., n, C), R (..., 3, 3); flattened to (N, n, C) and (N, 3, 3).
+    n, C = c.shape[-2:]
+    if lmax == 0:
+        return jnp.broadcast_to(c, batch + (n, C))
+    if math.prod(R.shape[:-2]) == 1:
+        # One rotation for all: the batch of `coeffs` rides along as channels.
+        cb = jnp.broadcast_to(c, batch + (n, C))
+        k = math.prod(batch)
+        x = jnp.moveaxis(cb.reshape(k, n, C), 0, -1).reshape(1, n, C * k)
+        out = _rotate_flat(x, R.reshape(1, 3, 3), lmax)
+        return jnp.moveaxis(out.reshape(n, C, k), -1, 0).reshape(batch + (n, C))
+    N = math.prod(batch)
+    cb = jnp.broadcast_to(c, batch + (n, C)).reshape(N, n, C)
+    Rb = jnp.broadcast_to(R, batch + (3, 3)).reshape(N, 3, 3)
+    return _rotate_flat(cb, Rb, lmax).reshape(batch + (n, C))
+
+
+# ---------------------------------------------------------------------------
+# rotate_sh: the J-matrix (Z-Y-Z with fixed tables) form
+# ---------------------------------------------------------------------------
+#
+# With Y = D(R_y(pi/2)) and Z(t) = D(R_z(t)) (real basis),
+#     D(R_z(a) R_y(b) R_z(g)) = Z(a - pi/2) Y^T Z(b) Y Z(g + pi/2),
+# because R_y(b) = R_z(-pi/2) R_y(-pi/2) R_z(b) R_y(pi/2) R_z(pi/2). R_y keeps the
+# sign of y, so Y never mixes the cos-type (m >= 0) and sin-type (m < 0)
+# coefficients of a band: it is two small dense blocks per band, stored padded as
+# `_j_tables(lmax)[0]` of shape (2, L+1, L+1, L+1) = (part, l, m', m). Z(t) only
+# mixes (l, m) with (l, -m) by cos(m t), sin(m t). Coefficients are packed as
+# X[part, l, |m|] (part 0: m >= 0, part 1: m < 0, zero where |m| > l or part 1 at
+# m = 0), so every step is one elementwise product or one batched matrix product.
+
+
+@functools.lru_cache(maxsize=None)
+def _j_tables(lmax: int):
+    """Fixed float64 tables of the J-matrix form, computed once per `lmax`.
+
+    Returns `(Y, pack, unpack, gen_idx, gen_coef)`:
+
+    * `Y` (2, L+1, L+1, L+1): the cos-type and sin-type blocks of D(R_y(pi/2))
+      for each band, zero-padded, indexed (type, l, |m|, |m'|);
+    * `pack` (2 (L+1)^2,): flat coefficient index of X[type, l, |m|] (n = a zero slot);
+    * `unpack` (n,): position in X.ravel() of each flat coefficient;
+    * `gen_idx`, `gen_coef` (3, n, K): the generators G_x, G_y, G_z of the real
+      representation (dD(exp(t K_k))/dt at t = 0), as K nonzeros per row.
+    """
+    L = lmax
+    P = L + 1
+    n = P * P
+    ry = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    blocks = [b[:, :, 0] for b in _real_blocks_minor(ry[:, :, None], L, xp=np)]
+    Y = np.zeros((2, P, P, P))
+    pack = np.full((2, P, P), n)
+    unpack = np.zeros(n, dtype=np.int64)
+    gens = []
     for l, b in enumerate(blocks):
-        cl = cm[l * l : (l + 1) ** 2]
-        outs.append(jnp.sum(b[:, :, None] * cl[None], axis=1))  # (2l+1, C, *batch)
-    out = jnp.concatenate(outs, axis=0)
-    del nb
-    return jnp.moveaxis(out, (0, 1), (-2, -1))
+        cos_i = l + np.arange(0, l + 1)
+        sin_i = l - np.arange(1, l + 1)
+        Y[0, l, : l + 1, : l + 1] = b[np.ix_(cos_i, cos_i)]
+        Y[1, l, 1 : l + 1, 1 : l + 1] = b[np.ix_(sin_i, sin_i)]
+        pack[0, l, : l + 1] = l * l + cos_i
+        pack[1, l, 1 : l + 1] = l * l + sin_i
+        unpack[l * l + cos_i] = l * P + np.arange(0, l + 1)
+        unpack[l * l + sin_i] = P * P + l * P + np.arange(1, l + 1)
+        # Generators in the flat band basis (index l + m).
+        ms = np.arange(-l, l + 1)
+        gz = np.zeros((2 * l + 1, 2 * l + 1))
+        gz[l + ms, l - ms] = -ms  # d/dt: c_m <- -m c_{-m}
+        zq = _z_dense(l, np.pi / 2)
+        gy = zq.T @ b.T @ gz @ b @ zq
+        gx = zq.T @ gy @ zq
+        gens.append((gx, gy, gz))
+    K = max(int(np.max(np.sum(np.abs(g) > 1e-12, axis=1), initial=0)) for gg in gens for g in gg)
+    K = max(K, 1)
+    gen_idx = np.zeros((3, n, K), dtype=np.int64)
+    gen_coef = np.zeros((3, n, K))
+    for l, gg in enumerate(gens):
+        for k, g in enumerate(gg):
+            for r in range(2 * l + 1):
+                (nz,) = np.nonzero(np.abs(g[r]) > 1e-12)
+                gen_idx[k, l * l + r, : len(nz)] = l * l + nz
+                gen_coef[k, l * l + r, : len(nz)] = g[r, nz]
+    return Y, pack.reshape(-1), unpack, gen_idx, gen_coef
+
+
+def _z_dense(l: int, t: float) -> np.ndarray:
+    """Z(t) = D(R_z(t)) on band l (flat index l + m), NumPy float64."""
+    z = np.zeros((2 * l + 1, 2 * l + 1))
+    z[l, l] = 1.0
+    for m in range(1, l + 1):
+        c, s = np.cos(m * t), np.sin(m * t)
+        z[l + m, l + m], z[l + m, l - m] = c, -s
+        z[l - m, l + m], z[l - m, l - m] = s, c
+    return z
+
+
+def _euler_zyz(R):
+    """ZYZ angles (a, b, g) with R = R_z(a) R_y(b) R_z(g), stable at gimbal lock.
+
+    Never divides by sin b. With u = s e^{ia} = R02 + i R12, v = s e^{ig} =
+    -R20 + i R21 (s = sin b):
+
+        (R00 + R11) + i (R10 - R01) = (1 + cos b) e^{i(a+g)},   u v       = s^2 e^{i(a+g)},
+        (R11 - R00) - i (R10 + R01) = (1 - cos b) e^{i(a-g)},   u conj(v) = s^2 e^{i(a-g)}.
+
+    For cos b >= 0, a + g comes from the left form (magnitude >= 1, well
+    conditioned) and a - g from u conj(v): its error ~eps/s enters D only
+    through terms of order s, so D stays accurate to ~eps as b -> 0. Mirrored
+    for cos b < 0. The half-angles fix a and g up to a common shift by pi, which
+    is the same rotation with b -> -b: b = atan2(s', R22) with the signed
+    s' = Re(u e^{-ia} + v e^{-ig}) / 2 absorbs it. At b = 0 or pi exactly the
+    undetermined combination comes out as 0 and D is still exact.
+    """
+    R00, R01, R02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    R10, R11, R12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    R20, R21, R22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    ur, ui, vr, vi = R02, R12, -R20, R21
+    up = R22 >= 0
+    sum_re = jnp.where(up, R00 + R11, ur * vr - ui * vi)
+    sum_im = jnp.where(up, R10 - R01, ur * vi + ui * vr)
+    dif_re = jnp.where(up, ur * vr + ui * vi, R11 - R00)
+    dif_im = jnp.where(up, ui * vr - ur * vi, -(R10 + R01))
+    sig = jnp.arctan2(sum_im, sum_re)
+    dlt = jnp.arctan2(dif_im, dif_re)
+    a = 0.5 * (sig + dlt)
+    g = 0.5 * (sig - dlt)
+    s = 0.5 * ((ur * jnp.cos(a) + ui * jnp.sin(a)) + (vr * jnp.cos(g) + vi * jnp.sin(g)))
+    b = jnp.arctan2(s, R22)
+    return a, b, g
+
+
+def _powers(c1, s1, lmax: int):
+    """cos(m t), sin(m t) for m = 0..lmax from c1 = cos t, s1 = sin t: (L+1, ...) each.
+
+    Complex multiplication in two short chains (m = qB + r with B ~ sqrt(L+1)), so
+    the fused expressions stay small; the error grows like sqrt(m) eps.
+    """
+    nb = max(1, math.isqrt(lmax + 1))
+
+    def chain(c, s, k):
+        cs, ss = [jnp.ones_like(c)], [jnp.zeros_like(s)]
+        for _ in range(k - 1):
+            cs, ss = cs + [cs[-1] * c - ss[-1] * s], ss + [ss[-1] * c + cs[-1] * s]
+        return jnp.stack(cs), jnp.stack(ss)
+
+    cr, sr = chain(c1, s1, nb)  # r = 0..B-1
+    cB = cr[-1] * c1 - sr[-1] * s1  # e^{iBt}
+    sB = sr[-1] * c1 + cr[-1] * s1
+    nq = -(-(lmax + 1) // nb)
+    cq, sq = chain(cB, sB, nq)  # q = 0..nq-1
+    cm = (cq[:, None] * cr[None] - sq[:, None] * sr[None]).reshape((nq * nb,) + c1.shape)
+    sm = (sq[:, None] * cr[None] + cq[:, None] * sr[None]).reshape((nq * nb,) + c1.shape)
+    return cm[: lmax + 1], sm[: lmax + 1]
+
+
+def _trig_tables(R, lmax: int):
+    """cos(m t), sin(m t), m = 0..lmax, for t = a - pi/2, b, g + pi/2: (6, L+1, N)."""
+    a, b, g = _euler_zyz(R)
+    ca, sa, cb, sb, cg, sg = jnp.cos(a), jnp.sin(a), jnp.cos(b), jnp.sin(b), jnp.cos(g), jnp.sin(g)
+    # e^{i(a - pi/2)} = sin a - i cos a, e^{i(g + pi/2)} = -sin g + i cos g.
+    cm, sm = _powers(jnp.stack([sa, cb, -sg]), jnp.stack([-ca, sb, cg]), lmax)  # (L+1, 3, N)
+    return jnp.concatenate([jnp.moveaxis(cm, 0, 1), jnp.moveaxis(sm, 0, 1)], axis=0)
+
+
+def _materialized_trig(R, lmax: int):
+    # The tables are small ((L+1) x N) but each entry is read by L+1 bands: let XLA
+    # fuse cos/sin into the consumers and it recomputes them per band (~10x slower
+    # for batches). A conditional with identical branches is never fused into its
+    # consumers, so the tables are computed once.
+    f = functools.partial(_trig_tables, lmax=lmax)
+    return jax.lax.cond(R[0, 2, 2] == R[0, 2, 2], f, f, R)
+
+
+def _rotate_impl(c, R, lmax: int):
+    """c (N, n, C), R (N, 3, 3) -> D(R) c, by Z Y^T Z Y Z (no Wigner matrix formed)."""
+    Y, pack, unpack, _, _ = _j_tables(lmax)
+    dt = c.dtype
+    N, n, C = c.shape
+    P = lmax + 1
+    trig = _materialized_trig(R, lmax)  # (6, P, N)
+    cs = trig[:, None, :, :, None]
+    yt = jnp.asarray(Y, dt)
+    ce = jnp.concatenate([jnp.moveaxis(c, 1, 0), jnp.zeros((1, N, C), dt)], axis=0)
+    x = ce[pack].reshape(2, P, P, N, C)
+
+    def z(x, k):
+        co, si = cs[k], cs[3 + k]
+        return jnp.stack([co * x[0] - si * x[1], si * x[0] + co * x[1]])
+
+    x = z(x, 2)
+    x = jnp.einsum("klpm,klmnc->klpnc", yt, x)
+    x = z(x, 1)
+    x = jnp.einsum("klmp,klmnc->klpnc", yt, x)
+    x = z(x, 0)
+    out = x.reshape(2 * P * P, N, C)[unpack]
+    return jnp.moveaxis(out, 0, 1)
+
+
+def _apply_generator(c, w, lmax: int):
+    """sum_k w_k G_k c for axial vectors w (N, 3): the derivative of D at the identity."""
+    _, _, _, gen_idx, gen_coef = _j_tables(lmax)
+    dt = c.dtype
+    cg = c[:, gen_idx]  # (N, 3, n, K, C)
+    return jnp.einsum("nk,kij,nkijc->nic", w, jnp.asarray(gen_coef, dt), cg)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _rotate_flat(c, R, lmax: int):
+    return _rotate_impl(c, R, lmax)
+
+
+@_rotate_flat.defjvp
+def _rotate_flat_jvp(lmax, primals, tangents):
+    # D(R + dR) = D(R) D(I + R^T dR) for tangent dR = R Omega (Omega skew): the
+    # derivative is D(R) (sum_k w_k G_k) with w the axial vector of Omega. Exact
+    # at every R, gimbal lock included; a non-tangent part of dR is ignored.
+    c, R = primals
+    dc, dR = tangents
+    out = _rotate_impl(c, R, lmax)
+    om = jnp.einsum("nji,njk->nik", R, dR)
+    w = 0.5 * jnp.stack([om[:, 2, 1] - om[:, 1, 2], om[:, 0, 2] - om[:, 2, 0], om[:, 1, 0] - om[:, 0, 1]], axis=-1)
+    return out, _rotate_impl(_apply_generator(c, w, lmax) + dc, R, lmax)
 
 
 def rotation_from_euler_zyz(alpha, beta, gamma) -> Float[Array, "*batch 3 3"]:
