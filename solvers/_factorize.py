@@ -255,17 +255,28 @@ def find_source(
     if (lmax + 1) ** 2 != coeffs.shape[0] or lmax < 1:
         raise ValueError(f"`coeffs` must have shape (n_coeffs, C) with lmax >= 1, got {tuple(coeffs.shape)}")
     dt = coeffs.dtype
-    h, w = int(height), 2 * int(height)
+    h = int(height)
+    reg = None
+    if region is not None:
+        rdir = np.asarray(region[0], np.float64)
+        rdir = rdir / np.linalg.norm(rdir)
+        if not np.any(np.asarray(jaxsh.latlong_directions(h, 2 * h)) @ rdir >= np.cos(float(region[1]))):
+            raise ValueError("`region` contains no lat-long sample; enlarge its radius")
+        reg = (jnp.asarray(rdir, dt), jnp.asarray(region[1], dt))
+    return _find_source(coeffs, reg, h, lmax)
+
+
+@eqx.filter_jit
+def _find_source(coeffs, region, h: int, lmax: int) -> SourceEstimate:
+    """`find_source` after its checks: one compiled program (`h`, `lmax` static)."""
+    dt = coeffs.dtype
+    w = 2 * h
     img = jaxsh.synthesize_latlong(coeffs, h, w)  # (H, W, C)
     dirs = jaxsh.latlong_directions(h, w, dtype=dt)
     wts = jaxsh.latlong_weights(h, w, dtype=dt)
     lum = jnp.mean(img, -1)
     if region is not None:
-        rdir = jnp.asarray(region[0], dt)
-        rdir = rdir / jnp.linalg.norm(rdir)
-        inside = (dirs @ rdir) >= jnp.cos(jnp.asarray(region[1], dt))
-        if not bool(jnp.any(inside)):
-            raise ValueError("`region` contains no lat-long sample; enlarge its radius")
+        inside = (dirs @ region[0]) >= jnp.cos(region[1])
         lum_sel = jnp.where(inside, lum, -jnp.inf)
     else:
         lum_sel = lum
@@ -290,7 +301,7 @@ def find_source(
     cen = jnp.sum(jnp.where(top[..., None], (wts * (lum - half))[..., None] * dirs, 0.0), axis=(0, 1))
     cen = jnp.where(jnp.linalg.norm(cen) > 0, cen, d0)
     d = cen / jnp.linalg.norm(cen)
-    radius = jnp.asarray(region[1], dt) if region is not None else jnp.clip(2.5 * r_half, 0.05, 1.0)
+    radius = region[1] if region is not None else jnp.clip(2.5 * r_half, 0.05, 1.0)
     ang = jnp.arccos(jnp.clip(dirs @ d, -1.0, 1.0))
     cap = ang <= radius
     ann = (ang > radius) & (ang <= 1.5 * radius)
@@ -416,7 +427,9 @@ def factorize(
     if fresnel:
         t = np.linspace(np.log(0.05), np.log(2.5), 9)
         for rnd in range(3):
-            vals = np.asarray(_mu_candidates(sub, jnp.asarray(t, dt), lmax, chunk, rcond))
+            # every round is padded to 9 candidates (the zooms repeat their last point): one compiled program
+            tp = np.concatenate([t, np.full(9 - len(t), t[-1])])
+            vals = np.asarray(_mu_candidates(sub, jnp.asarray(tp, dt), lmax, chunk, rcond))[: len(t)]
             # all-NaN when the data carry no signal (black images): keep the centre, the status says no_signal
             k = int(np.nanargmin(vals)) if np.any(np.isfinite(vals)) else len(t) // 2
             best = t[k]
