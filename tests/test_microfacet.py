@@ -300,7 +300,6 @@ def test_fit_on_cook_torrance_data_relit_under_a_new_area_source():
             return float(np.sqrt(np.mean((p - img[m]) ** 2) / np.mean(img[m] ** 2)))
 
         errs[name] = (err(res.brdf), err(CT_TRUTH))
-    print(errs)
     for name, (fit, floor) in errs.items():
         assert floor > 0.005, (name, errs)  # the test can see model error
         assert fit <= 1.2 * float(res.rel_rms), (name, errs, float(res.rel_rms))
