@@ -85,6 +85,7 @@ from ._reflectance import (
     uvw_from_directions as uvw_from_directions,
     ward_isotropic as ward_isotropic,
 )
+from ._microfacet import cook_torrance_smith as cook_torrance_smith, ggx as ggx
 from ._lighting import (
     directional_light_sh as directional_light_sh,
     disk_energy as disk_energy,

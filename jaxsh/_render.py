@@ -48,7 +48,10 @@ from ._practical import (
     _prepare_visibility,
     practical_lighting,
 )
+from ._microfacet import cook_torrance_smith, ggx
 from ._reflectance import tangent_frame, torrance_sparrow
+
+_REFERENCE_BRDFS = {"torrance_sparrow": torrance_sparrow, "cook_torrance": cook_torrance_smith, "ggx": ggx}
 
 
 def _channels(x, name):
@@ -293,9 +296,10 @@ def render_reference(
     mesh=None,
     points: Real[ArrayLike, "*#batch 3"] | None = None,
     chunk: int = 4096,
+    brdf_model: str = "torrance_sparrow",
     **legacy_kw,
 ) -> Float[Array, "*batch C"]:
-    """Reference renderer: the reflection equation with the full Torrance-Sparrow BRDF.
+    """Reference renderer: the reflection equation with the full Torrance-Sparrow BRDF (or a fuller one).
 
     $B = \\int L(\\omega_i)\\,\\rho(\\omega_i, \\omega_o)\\max(n\\cdot\\omega_i, 0)\\,V\\,d\\omega_i$
     with $\\rho$ = `torrance_sparrow` (R&H sec. 5.2), integrated exactly for
@@ -323,9 +327,16 @@ def render_reference(
       `points` `(..., 3)`: every quadrature direction of every pixel is then
       ray-cast (`directional_visibility`; NumPy/embree, N × M rays) and the
       integrand multiplied by its visibility (R&H sec. 6.4 shadowing, exactly).
+    - `brdf_model` (static): the BRDF of the integrand, in the parameters of
+      `brdf`: `"torrance_sparrow"` (default, the practical model's BRDF),
+      `"cook_torrance"` (`jaxsh.cook_torrance_smith`: Beckmann, Smith $G$,
+      Fresnel at the half angle) or `"ggx"` (`jaxsh.ggx`) — data the practical
+      model cannot reproduce exactly (docs/conventions.md, "fuller reference BRDFs").
 
     **Returns:** `(..., C)` radiance.
     """
+    if brdf_model not in _REFERENCE_BRDFS:
+        raise ValueError(f"`brdf_model` must be one of {sorted(_REFERENCE_BRDFS)}, got {brdf_model!r}")
     brdf, lighting, light_kw = model_args("render_reference", brdf, lighting, legacy, legacy_kw, ("directional", "disks"))
     lighting = _reference_lighting(lighting, light_kw)
     if (mesh is None) != (points is None):
@@ -396,12 +407,12 @@ def render_reference(
         vis = jnp.asarray(directional_visibility(mesh, np.asarray(pts), np.asarray(n), np.asarray(sd)), dt)
     sigma, mu = _check_sigma_traced(jnp.asarray(sigma, dt), None if mu is None else jnp.asarray(mu, dt))
     chunk = check_positive_int(chunk, "chunk")
-    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk)
+    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, _REFERENCE_BRDFS[brdf_model])
     return out.reshape(batch + (c,))
 
 
 @eqx.filter_jit
-def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk):
+def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, rho=torrance_sparrow):
     npx = n.shape[0]
     pad = (-npx) % chunk if npx > chunk else 0
     size = chunk if npx > chunk else npx
@@ -411,7 +422,7 @@ def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk):
         wi = jnp.broadcast_to(sd[None], (nn.shape[0],) + sd.shape)
         wo = jnp.broadcast_to(vv[:, None, :], wi.shape)
         nb = jnp.broadcast_to(nn[:, None, :], wi.shape)
-        spec = torrance_sparrow(wi, wo, nb, 0.0, 1.0, mu, sigma)  # F S / (4 cos cos), 0 below horizons
+        spec = rho(wi, wo, nb, 0.0, 1.0, mu, sigma)  # F S / (4 cos cos) (or F D G / ...), 0 below horizons
         cos_i = jnp.maximum(jnp.sum(wi * nb, -1), 0.0) * vv_is
         cos_o = jnp.sum(nn * vv, -1)
         diff = jnp.where((cos_o > 0)[:, None], cos_i, 0.0) @ sl  # (n, C)
