@@ -100,8 +100,14 @@ def sphere_capture(
     elevation: float = 0.45,
     disk_nodes=(48, 96),
     dtype=np.float64,
+    brdf_model: str = "torrance_sparrow",
 ) -> SyntheticCapture:
-    """Views of a unit sphere rendered with the full Torrance–Sparrow BRDF (`jaxsh.render_reference`).
+    """Views of a unit sphere rendered by the reference renderer (`jaxsh.render_reference`).
+
+    `brdf_model`: the reference BRDF, `"torrance_sparrow"` (the model the
+    solvers fit, R&H sec. 5.2), or a fuller one the solvers cannot reproduce
+    exactly, `"cook_torrance"` (Beckmann, Smith G, Fresnel at the half angle)
+    or `"ggx"` — so a fit can be checked against data with model error.
 
     `noise`: additive Gaussian noise with standard deviation `noise` times the
     RMS of each clean image over the object (1 % by default). `sources`:
@@ -120,6 +126,7 @@ def sphere_capture(
         out = jaxsh.render_reference(
             n, v, brdf.kd, brdf.ks, brdf.mu, brdf.sigma,
             disks=None if disks is None else disks, directional=directional, disk_nodes=disk_nodes,
+            brdf_model=brdf_model,
         )
         img[m] = np.asarray(out)
         clean.append(img)
