@@ -227,8 +227,8 @@ def _table_lookup(table, rows: int, r):
     """Bicubic interpolation of a `_slow_table` at unit directions `r` `(N, 3)`: `(N, C)`.
 
     Gradient-safe: at the poles (r_x = r_y = 0) the angles are computed from substituted values
-    (double `where`), so the value is exact and the gradient finite there (its tangential part is
-    0 exactly at the two poles, and that of the interpolant everywhere else).
+    (double `where`), so the value is the interpolant's and the gradient finite there (its
+    tangential part is 0 exactly at the two poles, and that of the interpolant everywhere else).
     """
     rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
     w = 2 * rows
