@@ -24,7 +24,10 @@ paper's form.
 
 The model itself (the terms and their combination with the BRDF) is written
 once, in `_practical.py`; `render_practical` validates, broadcasts to the
-image and reshapes.
+image and reshapes. On large images it evaluates $L_{slow}(R)$ by a table:
+the filtered lighting synthesized once on a lat-long grid and interpolated
+bicubically at the mirror directions, within a documented error bound
+(`method`; docs/conventions.md, "The slow specular term by table").
 """
 
 from __future__ import annotations
