@@ -35,9 +35,10 @@ from ._custom_types import SequenceLike
 from ._checks import check_dirs, check_positive_int
 from ._indexing import sh_degrees
 from ._model import Lighting, TorranceSparrow
-from ._reflectance import _half_angle, fresnel_normalized, reflect
+from ._reflectance import _safe_sqrt, _theta_h_sq, fresnel_normalized
 from ._sh import _real_sh_flat, _unit_vectors
 from ._spectra import lambertian_spectrum, microfacet_spectrum
+from ._transforms import _synthesize
 
 _LIGHT_KW = ("slow_sh", "fast_directions", "fast_energy")
 
@@ -153,12 +154,154 @@ def _sh_bands(dirs, coeffs, lmax: int, chunk: int):
     return out.reshape((-1,) + out.shape[2:])[:npx]
 
 
-def _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse: bool, chunk: int) -> PracticalTerms:
+# --------------------------------------------------------------------------- the slow specular term by table
+#
+# `render_practical` (`method="table"`) evaluates L_slow(R) = sum_lm e^{-(sigma l)^2} L_lm Y_lm(R) (eq. 22)
+# once per call on a lat-long grid and interpolates it at the mirror directions, instead of summing
+# (lmax+1)^2 harmonics per pixel. The grid and its error bound (docs/conventions.md, "The slow specular
+# term by table"):
+#
+# * rows theta_i = (i + 1/2) h, i < H, columns phi_j = (j + 1/2) h, j < W = 2H, h = pi/H (the lat-long
+#   layout, filled by `synthesize_latlong`'s Legendre sums and FFT: O(lmax^2 H + H W log W));
+# * the double Fourier sphere extension f(-theta, phi) = f(theta, phi + pi) (and the same about
+#   theta = pi) continues every meridian across the poles: two padding rows at each pole are rows 0, 1
+#   (H-1, H-2) shifted by W/2 columns, two padding columns at each end wrap phi. A band-l function is
+#   then a trigonometric polynomial of degree <= l in theta and in phi on the whole torus: the poles
+#   are ordinary points of the interpolation;
+# * 4-point (cubic) Lagrange interpolation in phi on the 4 rows around theta, then in theta.
+#
+# Bound: 4-point Lagrange interpolation on a uniform grid of step h errs by at most (3/128) h^4 max|g^(4)|,
+# its weights sum in absolute value to at most 5/4 (Lebesgue constant), and Bernstein's inequality bounds
+# the 4th derivative of a degree-l trigonometric polynomial by l^4 times its maximum, which for band l of
+# the lighting is at most a_l = sqrt((2l+1)/(4 pi)) ||L_l||_2 (Cauchy-Schwarz and the addition theorem).
+# So, per channel and everywhere on the sphere,
+#
+#     |table - exact| <= (27/512) h^4 sum_l l^4 e^{-(sigma l)^2} a_l,      27/512 = (3/128)(1 + 5/4),
+#
+# plus rounding (at most 25/16 times the rounding of the tabulated values). `_table_rows` picks the
+# smallest grid of `_TABLE_LADDER` for which this bound is at most `_TABLE_TOL * sum_l a_l` for ANY
+# lighting of that lmax (the worst case puts all of it in the band that maximizes l^4 e^{-(sigma l)^2}),
+# from sigma when it is concrete, else from lmax alone.
+
+_TABLE_TOL = 1e-6
+_TABLE_CONST = 27.0 / 512.0
+_TABLE_LADDER = (16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512, 768, 1024)
+
+
+def _table_rows(lmax: int, sigma: float | None, tol: float = _TABLE_TOL) -> int | None:
+    """Rows H of the table (W = 2H) whose bound is `<= tol * sum_l a_l` for any lighting; None beyond the ladder."""
+    l = np.arange(lmax + 1, dtype=np.float64)
+    if sigma is None:
+        m4 = float(lmax) ** 4
+    else:
+        m4 = float(np.max(l**4 * np.exp(-((float(sigma) * l) ** 2))))
+    need = np.pi * (_TABLE_CONST * m4 / tol) ** 0.25
+    for h in _TABLE_LADDER:
+        if h >= need:
+            return h
+    return None
+
+
+def _slow_table(slow_sh, sigma, rows: int):
+    """The filtered slow lighting (eqs. 20, 22) on the padded `(rows + 4, 2 rows + 4)` grid, flattened to `(P, C)`."""
+    lmax = int(round(np.sqrt(slow_sh.shape[0]))) - 1
+    filt = microfacet_spectrum(sigma, lmax)[sh_degrees(lmax)]
+    t = _synthesize(slow_sh * filt[:, None], lmax, rows, 2 * rows)  # (H, W, C)
+    across = jnp.roll(t, rows, axis=1)  # column j -> phi_j + pi
+    t = jnp.concatenate([across[1::-1], t, across[:-3:-1]], axis=0)  # theta rows -2, -1 | 0..H-1 | H, H+1
+    t = jnp.concatenate([t[:, -2:], t, t[:, :2]], axis=1)  # phi columns -2, -1 | 0..W-1 | W, W+1
+    return t.reshape(-1, t.shape[-1])
+
+
+def _cubic_weights(t):
+    """4-point Lagrange weights at the nodes -1, 0, 1, 2 for t in [0, 1)."""
+    return (
+        -t * (t - 1.0) * (t - 2.0) / 6.0,
+        (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0,
+        -(t + 1.0) * t * (t - 2.0) / 2.0,
+        (t + 1.0) * t * (t - 1.0) / 6.0,
+    )
+
+
+def _table_lookup(table, rows: int, r):
+    """Bicubic interpolation of a `_slow_table` at unit directions `r` `(N, 3)`: `(N, C)`.
+
+    Gradient-safe: at the poles (r_x = r_y = 0) the angles are computed from substituted values
+    (double `where`), so the value is the interpolant's and the gradient finite there (its
+    tangential part is 0 exactly at the two poles, and that of the interpolant everywhere else).
+    """
+    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
+    w = 2 * rows
+    wp = w + 4
+    rho2 = rx * rx + ry * ry
+    ok = rho2 > 0.0
+    rho = jnp.sqrt(jnp.where(ok, rho2, 1.0))
+    theta = jnp.arctan2(jnp.where(ok, rho, 0.0), rz)
+    phi = jnp.arctan2(jnp.where(ok, ry, 0.0), jnp.where(ok, rx, 1.0))
+    phi = jnp.where(phi < 0.0, phi + 2.0 * np.pi, phi)
+    u = theta * (rows / np.pi) - 0.5  # row coordinate in [-1/2, H - 1/2]
+    v = phi * (w / (2.0 * np.pi)) - 0.5  # column coordinate in [-1/2, W - 1/2]
+    i0 = jnp.clip(jnp.floor(u), -1.0, rows - 1.0)
+    j0 = jnp.clip(jnp.floor(v), -1.0, w - 1.0)
+    wu = _cubic_weights(u - i0)
+    wv = _cubic_weights(v - j0)
+    base = (i0.astype(jnp.int32) + 1) * wp + j0.astype(jnp.int32) + 1  # padded index of (i0 - 1, j0 - 1)
+    out = 0.0
+    for a in range(4):
+        acc = 0.0
+        for b in range(4):
+            acc = acc + wv[b][:, None] * table[base + (a * wp + b)]
+        out = out + wu[a][:, None] * acc
+    return out
+
+
+# --------------------------------------------------------------------------- per-pixel kernels, component-wise
+# (XLA on CPU vectorizes (N,) columns far better than (N, 3) rows with a minor axis of 3.)
+
+
+def _sh2(x, y, z, k: int):
+    """The first `k` (1, 4 or 9) real SH at unit components `x, y, z`, in closed form (docs/conventions.md)."""
+    c0, c1, c2 = 0.28209479177387814, 0.4886025119029199, 1.0925484305920792
+    c3, c4 = 0.31539156525252005, 0.5462742152960396
+    ys = [jnp.full_like(x, c0), c1 * y, c1 * z, c1 * x, c2 * x * y, c2 * y * z, c3 * (3.0 * z * z - 1.0), c2 * x * z,
+          c4 * (x * x - y * y)]
+    return ys[:k]
+
+
+def _sh2_dot(n, coeffs):
+    """`real_sh(n, l) @ coeffs` for the first (l+1)^2 ≤ 9 coefficients, without forming the basis: `(N, C)`."""
+    ys = _sh2(n[:, 0], n[:, 1], n[:, 2], coeffs.shape[0])
+    out = ys[0][:, None] * coeffs[0][None, :]
+    for yk, ck in zip(ys[1:], coeffs[1:]):
+        out = out + yk[:, None] * ck[None, :]
+    return out
+
+
+def _half_angles(d, v, n):
+    """θh `(N, J)` of unit sources `d` `(J, 3)` at unit views / normals `(N, 3)` (`jaxsh.half_angle`'s formula)."""
+    hx = d[None, :, 0] + v[:, 0:1]
+    hy = d[None, :, 1] + v[:, 1:2]
+    hz = d[None, :, 2] + v[:, 2:3]
+    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
+    cx = hy * nz - hz * ny
+    cy = hz * nx - hx * nz
+    cz = hx * ny - hy * nx
+    return _safe_sqrt(_theta_h_sq(cx * cx + cy * cy + cz * cz, hx * nx + hy * ny + hz * nz))
+
+
+def _eq24_terms(
+    n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse: bool, chunk: int, table=None
+) -> PracticalTerms:
     """THE kernel of R&H eq. 24: the per-pixel terms at flat `(N, 3)` normals / views.
 
     Inputs are validated and cast (`_prepare_lighting`, `_prepare_visibility`):
     `slow_sh` `(n_coeffs, C)`, `fdir` `(J, 3)`, `fen` `(J, C)` or None;
     `transfer` `(N, k)`, `fvis` `(N, J)`, `rvis` `(N,)` or None.
+
+    `table=(flat, rows)` (a `_slow_table` of the slow lighting already filtered
+    for σ) replaces the per-band SH evaluation at the mirror direction by its
+    interpolation: `bands` is then `(N, 1, C)`, the filtered $L_{slow}(R)$
+    itself, whose filter $e^{-(\\sigma\\cdot 0)^2} = 1$ in `components` leaves it as is.
     """
     dt = n.dtype
     npx = n.shape[0]
@@ -167,6 +310,7 @@ def _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffu
     v = _unit_vectors(v, "views")
     cos_o = jnp.sum(n * v, -1)
     visible = cos_o > 0
+    r = 2.0 * cos_o[:, None] * n - v  # the mirror direction R (`jaxsh.reflect`)
     cos_o = jnp.where(visible, cos_o, 1.0)
     irr = jnp.zeros((npx, c), dt)
     if slow_sh is not None:
@@ -178,9 +322,12 @@ def _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffu
             irr = irr + transfer[:, :k] @ slow_sh[:k]
         else:
             a = lambertian_spectrum(l2, dt)[sh_degrees(l2)]
-            irr = irr + _real_sh_flat(n, l2) @ (slow_sh[:k] * a[:, None])
-        r = _unit_vectors(reflect(v, n))
-        bands = _sh_bands(r, slow_sh, lmax, chunk)
+            irr = irr + _sh2_dot(n, slow_sh[:k] * a[:, None])
+        r = _unit_vectors(r)
+        if table is None:
+            bands = _sh_bands(r, slow_sh, lmax, chunk)
+        else:
+            bands = _table_lookup(table[0], table[1], r)[:, None, :]
         if rvis is not None:
             bands = bands * rvis[:, None, None]
     else:
@@ -188,16 +335,16 @@ def _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffu
     if fdir is not None:
         # Fast sources: eq. 23 (half angles) and their diffuse term.
         d = _unit_vectors(fdir)
-        cos_i = n @ d.T  # (N, J)
+        cos_i = n[:, 0:1] * d[None, :, 0] + n[:, 1:2] * d[None, :, 1] + n[:, 2:3] * d[None, :, 2]  # (N, J)
         lit = cos_i > 0
         vis = jnp.ones_like(cos_i) if fvis is None else fvis
         weight = jnp.where(lit, vis, 0.0)
-        theta_h = _half_angle(d[None, :, :], v[:, None, :], n[:, None, :])
+        theta_h = _half_angles(d, v, n)
         if exact_fast_diffuse:
             irr = irr + (jnp.where(lit, cos_i, 0.0) * vis) @ fen
         else:  # the letter of eq. 21: the fast sources' 9-term irradiance (unshadowed)
             a = lambertian_spectrum(2, dt)[sh_degrees(2)]
-            irr = irr + _real_sh_flat(n, 2) @ ((_real_sh_flat(d, 2) * a[None, :]).T @ fen)
+            irr = irr + _sh2_dot(n, (_real_sh_flat(d, 2) * a[None, :]).T @ fen)
         energy = fen
     else:
         theta_h = jnp.zeros((npx, 0), dt)

@@ -24,7 +24,10 @@ paper's form.
 
 The model itself (the terms and their combination with the BRDF) is written
 once, in `_practical.py`; `render_practical` validates, broadcasts to the
-image and reshapes.
+image and reshapes. On large images it evaluates $L_{slow}(R)$ by a table:
+the filtered lighting synthesized once on a lat-long grid and interpolated
+bicubically at the mirror directions, within a documented error bound
+(`method`; docs/conventions.md, "The slow specular term by table").
 """
 
 from __future__ import annotations
@@ -46,6 +49,8 @@ from ._practical import (
     _eq24_terms,
     _prepare_lighting,
     _prepare_visibility,
+    _slow_table,
+    _table_rows,
     practical_lighting,
 )
 from ._microfacet import cook_torrance_smith, ggx
@@ -93,19 +98,23 @@ def _check_geometry(x, name, batch, mask, allow_zero=False):
     a = _concrete(x)
     if a is None or a.size == 0:
         return
-    norm = np.linalg.norm(np.broadcast_to(a, tuple(batch) + (3,)), axis=-1)
-    bad = ~np.isfinite(norm) if allow_zero else ~np.isfinite(norm) | (norm == 0)
+    norm2 = np.einsum("...i,...i->...", a, a)  # on the array as given (a broadcast view is checked once)
+    bad = ~np.isfinite(norm2) if allow_zero else ~np.isfinite(norm2) | (norm2 == 0)
+    if not bad.any():
+        return
+    bad = np.broadcast_to(bad, tuple(batch))
     where = "without a `mask`"
     if mask is not None:
         m = _concrete(mask)
         if m is None:
             return
-        bad &= np.broadcast_to(m.astype(bool), bad.shape)
+        bad = bad & np.broadcast_to(m.astype(bool), bad.shape)
         where = "inside the `mask`"
     if bad.any():
         i = tuple(int(k) for k in np.argwhere(bad)[0])
         what = "finite directions (zero vectors mark misses)" if allow_zero else "finite, non-zero directions"
-        raise ValueError(f"`{name}` must be {what} {where}; pixel {i} is {a[i] if a.ndim > 1 else a}")
+        shown = np.broadcast_to(a, tuple(batch) + (3,))[i] if a.ndim > 1 else a
+        raise ValueError(f"`{name}` must be {what} {where}; pixel {i} is {shown}")
 
 
 def _check_channels(pairs):
@@ -165,6 +174,7 @@ def render_practical(
     reflected_visibility: Real[ArrayLike, "*#batch"] | None = None,
     exact_fast_diffuse: bool = True,
     mask: Bool[ArrayLike, "*#batch"] | None = None,
+    method: str = "auto",
     **legacy_kw,
 ) -> Components:
     """The practical model of R&H 2001 eq. 24 per pixel (module docstring).
@@ -194,6 +204,17 @@ def render_practical(
       render as 0 and their normals/views are not read (a G-buffer's misses
       carry zero normals). Without a mask, a zero or non-finite normal or
       view is an error.
+    - `method`: how $L_{slow}(R)$ is evaluated. `"exact"`: the
+      $(l_{max}+1)^2$ harmonics at every pixel. `"table"`: the filtered
+      lighting synthesized once on a lat-long grid and interpolated
+      (bicubic, across the poles) at the mirror directions; the grid is
+      chosen from `lmax` and σ (from `lmax` alone when σ is traced) so that
+      the interpolation error is at most $10^{-6}\\sum_l a_l$,
+      $a_l = \\sqrt{(2l+1)/4\\pi}\\,\\|L_l\\|_2$ (a bound on the lighting's
+      maximum; docs/conventions.md gives the bound), or a `ValueError` when
+      that needs more than 1024 rows. `"auto"` (default): the table when such
+      a grid exists and is cheaper than the per-pixel sum (large images:
+      $N (l_{max}+1)^2 \\ge 8 H W$ and at least 4096 pixels), else exact.
 
     **Returns:** `Components(diffuse, specular_slow, specular_fast, total)`,
     each `(..., C)`.
@@ -219,19 +240,57 @@ def render_practical(
     vis = _prepare_visibility(lighting, batch, transfer, fast_visibility, reflected_visibility, dt, strict=False)
     if mask is not None:
         mask = jnp.broadcast_to(jnp.asarray(mask, bool), batch).reshape(-1)
-        up = jnp.asarray([0.0, 0.0, 1.0], dt)
-        n = jnp.where(mask[:, None], n, up)
-        v = jnp.where(mask[:, None], v, up)
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
     sigma, mu = _check_sigma_traced(jnp.asarray(brdf.sigma, dt), mu)
-    out = _render_practical(n, v, mask, kd, ks, mu, sigma, slow, fdir, fen, *vis, bool(exact_fast_diffuse))
+    rows = _choose_table(method, lighting, brdf.sigma, n.shape[0])
+    terms = _terms(n, v, mask, slow, sigma, fdir, fen, *vis, bool(exact_fast_diffuse), rows)
+    out = _combine(terms, mask, kd, ks, mu, sigma)
     c = out.total.shape[-1]
     return Components(*(x.reshape(batch + (c,)) for x in out))
 
 
+# `method="auto"` takes the table when N (lmax+1)^2 >= _TABLE_COST * H * W and N >= _TABLE_MIN_PIXELS:
+# building the table costs about as much as the exact sum at _TABLE_COST / (lmax+1)^2 pixels per texel.
+_TABLE_COST = 8
+_TABLE_MIN_PIXELS = 4096
+
+
+def _choose_table(method, lighting, sigma, npx: int) -> int | None:
+    """The rows of the slow-lighting table for `method` (None: the exact per-pixel sum)."""
+    if method not in ("auto", "table", "exact"):
+        raise ValueError(f"`method` must be 'auto', 'table' or 'exact', got {method!r}")
+    if method == "exact" or lighting.slow_sh is None:
+        return None
+    lmax = lighting.lmax
+    s = _concrete(sigma)
+    rows = _table_rows(lmax, None if s is None else float(s))
+    if method == "table":
+        if rows is None:
+            what = f"sigma = {float(s):g}" if s is not None else "a traced sigma (the grid is then chosen from lmax alone)"
+            raise ValueError(
+                f"method='table': with lmax = {lmax} and {what} the interpolation error bound needs a lat-long "
+                "table of more than 1024 rows; use method='exact' (or 'auto')"
+            )
+        return rows
+    if rows is None or npx < _TABLE_MIN_PIXELS or npx * (lmax + 1) ** 2 < _TABLE_COST * rows * 2 * rows:
+        return None
+    return rows
+
+
+# Two programs, not one: with the terms materialized by the first, XLA does not re-fuse (and
+# recompute) the table lookup and the shared per-pixel terms into each of the four outputs.
 @eqx.filter_jit
-def _render_practical(n, v, mask, kd, ks, mu, sigma, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse):
-    terms = _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, 8192)
+def _terms(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows):
+    if mask is not None:  # pixels outside the mask look along +z (a valid direction) and render as 0
+        up = jnp.asarray([0.0, 0.0, 1.0], n.dtype)
+        n = jnp.where(mask[:, None], n, up)
+        v = jnp.where(mask[:, None], v, up)
+    table = None if rows is None else (_slow_table(slow_sh, sigma, rows), rows)
+    return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, 8192, table)
+
+
+@eqx.filter_jit
+def _combine(terms, mask, kd, ks, mu, sigma):
     out = terms.components(kd, ks, mu, sigma)
     if mask is not None:
         out = Components(*(jnp.where(mask[:, None], x, 0.0) for x in out))
