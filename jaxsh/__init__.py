@@ -120,6 +120,7 @@ from ._practical import PracticalTerms as PracticalTerms, practical_terms as pra
 from ._rbf import (
     RBFModel as RBFModel,
     rbf_auto_chunk as rbf_auto_chunk,
+    rbf_check_samples as rbf_check_samples,
     rbf_evaluate as rbf_evaluate,
     rbf_fit as rbf_fit,
     rbf_solve as rbf_solve,

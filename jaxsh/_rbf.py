@@ -16,7 +16,8 @@ Layout: centres `(K, d)`, kernel weights `(K, C)`, polynomial coefficients
 channels last. The saddle-point solve of eq. 10 for given centres is
 `rbf_fit` (all samples as centres) and `rbf_solve` (the padded,
 active-mask form used inside a jitted loop); greedy centre selection and
-the input checks on data (duplicates, degeneracy) are `solvers.fit_sharing`.
+the input checks on data (duplicates, degeneracy) are `solvers.fit_sharing`;
+the shape checks of both are `rbf_check_samples`.
 
 **Cost and memory.** Evaluation at $M$ points is $O(M K d)$; the points are
 processed in chunks of `chunk` rows with `jax.lax.map`, so at most a
@@ -341,23 +342,52 @@ def _solve_core(centers, values, active, scale, smoothing, lo, hi):
 _solve_jit = eqx.filter_jit(_solve_core)
 
 
-def _check_solve_inputs(centers, values, scale, smoothing):
-    centers = as_float_array(centers, "centers")
-    if centers.ndim != 2 or centers.shape[0] < 1:
-        raise ValueError(f"`centers` must have shape (K, d), got {tuple(centers.shape)}")
-    k, d = centers.shape
+def rbf_check_samples(
+    points: Real[ArrayLike, "N d"],
+    values: Real[ArrayLike, "N *C"],
+    scale: Real[ArrayLike, " d"] | SequenceLike | None = None,
+    *,
+    name: str = "points",
+) -> tuple[Float[Array, "N d"], Float[Array, "N C"], Float[Array, " d"], bool]:
+    """Shape and dtype checks of RBF samples (Zickler 2006 eqs. 9–13): the arguments of `rbf_fit` / `rbf_solve`.
+
+    Shared by `rbf_fit`, `rbf_solve` and `solvers.fit_sharing`, so all of
+    them reject bad shapes with the same `ValueError` (naming the argument
+    and the expected shape). Only shapes and dtypes are checked (jit-safe):
+    values (NaN, duplicate or degenerate points, the sign of `scale`) are
+    not.
+
+    **Arguments:** `points` `(N, d)`, $N \\ge 1$ (called `name` in the
+    messages, e.g. `"centers"`); `values` `(N,)` or `(N, C)`; `scale` `(d,)`
+    or a scalar, the diagonal of $M$ (eq. 11), default ones.
+
+    **Returns:** `(points, values, scale, single)`: `(N, d)`, `(N, C)` (a
+    column added for `(N,)` values, then `single` is True), `(d,)`, all of
+    the widest floating dtype of `points` and `values` (the dtype rules of
+    the package: integers to the default float, float16 and complex
+    rejected).
+    """
+    points = as_float_array(points, name)
+    if points.ndim != 2 or points.shape[0] < 1:
+        raise ValueError(f"`{name}` must have shape (N, d) with N >= 1, got {tuple(points.shape)}")
+    k, d = points.shape
     values = as_float_array(values, "values")
     single = values.ndim == 1
     if single:
         values = values[:, None]
     if values.ndim != 2 or values.shape[0] != k:
-        raise ValueError(f"`values` must have shape ({k},) or ({k}, C) to match `centers` {(k, d)}, got {tuple(values.shape)}")
-    dt = _widest(centers, values)
+        raise ValueError(f"`values` must have shape ({k},) or ({k}, C) to match `{name}` {(k, d)}, got {tuple(values.shape)}")
+    dt = _widest(points, values)
     s = _check_scale(scale, d, dt).astype(dt)
+    return points.astype(dt), values.astype(dt), s, single
+
+
+def _check_solve_inputs(centers, values, scale, smoothing):
+    c, v, s, single = rbf_check_samples(centers, values, scale, name="centers")
     rho = as_float_array(smoothing, "smoothing")
     if rho.ndim != 0:
         raise ValueError(f"`smoothing` must be a scalar, got shape {tuple(rho.shape)}")
-    return centers.astype(dt), values.astype(dt), s, rho.astype(dt), single
+    return c, v, s, rho.astype(c.dtype), single
 
 
 def rbf_solve(

@@ -177,6 +177,37 @@ def _index(x, name, lo=1.0):
     return _require(x, lambda a: a < lo, name, f">= {lo:g} (a relative index of refraction)")
 
 
+def _phong_exponent(x, name):
+    return _require(x, lambda a: a <= -1, name, "> -1 (the Phong exponent)")
+
+
+def _nonnegative_roughness(x, name):
+    return _require(x, lambda a: a < 0, name, ">= 0 (0: Lambertian)")
+
+
+def _brdf_args(wi, wo, n, params: dict, checks: dict | None = None):
+    """The BRDF arguments: directions `wi`, `wo`, `n` and the named parameters, converted, checked, broadcast.
+
+    `params` maps a parameter name to its value (`None` values, e.g.
+    `mu=None`, are left out; `lobes` is `(..., K, 3)`, the others scalars
+    `(...)`); `checks` maps a name to its range check `check(array, name)`
+    (`_positive`, `_index`, ...: a `ValueError` or `equinox.error_if`).
+    Returns `(wi, wo, n, {name: array})`, all of one dtype (`_prepare`).
+    """
+    names = [k for k, v in params.items() if v is not None]
+    out = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir")]
+                   + [(k, params[k], "lobes" if k == "lobes" else "scalar") for k in names])
+    checks = checks or {}
+    vals = {k: checks[k](a, k) if k in checks else a for k, a in zip(names, out[3:])}
+    return out[0], out[1], out[2], vals
+
+
+def _fresnel_args(cos_theta, mu):
+    """`(cos_theta, mu)` converted and broadcast, `mu > 0` checked (`fresnel_dielectric`, `fresnel_normalized`)."""
+    c, mu = _prepare([("cos_theta", cos_theta, "scalar"), ("mu", mu, "scalar")])
+    return c, _positive(mu, "mu")
+
+
 # --------------------------------------------------------------------------- safe primitives
 
 
@@ -638,8 +669,7 @@ def fresnel_dielectric(cos_theta: Real[ArrayLike, "*#batch"], mu: Real[ArrayLike
 
     Comparable to `mitsuba.fresnel` (its `r` output).
     """
-    c, mu = _prepare([("cos_theta", cos_theta, "scalar"), ("mu", mu, "scalar")])
-    return _fresnel_jit(c, _positive(mu, "mu"))
+    return _fresnel_jit(*_fresnel_args(cos_theta, mu))
 
 
 def fresnel_normalized(cos_theta: Real[ArrayLike, "*#batch"], mu: Real[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
@@ -655,8 +685,7 @@ def fresnel_normalized(cos_theta: Real[ArrayLike, "*#batch"], mu: Real[ArrayLike
 
     **Returns:** `(...)`.
     """
-    c, mu = _prepare([("cos_theta", cos_theta, "scalar"), ("mu", mu, "scalar")])
-    return _fresnel_normalized_jit(c, _positive(mu, "mu"))
+    return _fresnel_normalized_jit(*_fresnel_args(cos_theta, mu))
 
 
 # --------------------------------------------------------------------------- BRDF models
@@ -699,8 +728,8 @@ def lambertian(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    wi, wo, n, kd = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("kd", kd, "scalar")])
-    return _lambertian(wi, wo, n, kd)
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"kd": kd})
+    return _lambertian(wi, wo, n, p["kd"])
 
 
 @eqx.filter_jit
@@ -726,8 +755,8 @@ def phong_transfer(
 
     **Returns:** `(...)`.
     """
-    wi, wo, n, s = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("s", s, "scalar")])
-    return _phong(wi, wo, n, _require(s, lambda a: a <= -1, "s", "> -1 (the Phong exponent)"), False)
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"s": s}, {"s": _phong_exponent})
+    return _phong(wi, wo, n, p["s"], False)
 
 
 def phong(
@@ -747,8 +776,8 @@ def phong(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    wi, wo, n, s = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("s", s, "scalar")])
-    return _phong(wi, wo, n, _require(s, lambda a: a <= -1, "s", "> -1 (the Phong exponent)"), True)
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"s": s}, {"s": _phong_exponent})
+    return _phong(wi, wo, n, p["s"], True)
 
 
 @eqx.filter_jit
@@ -794,17 +823,8 @@ def torrance_sparrow(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    args = [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("kd", kd, "scalar"), ("ks", ks, "scalar")]
-    if mu is not None:
-        args.append(("mu", mu, "scalar"))
-    args.append(("sigma", sigma, "scalar"))
-    out = _prepare(args)
-    if mu is None:
-        wi, wo, n, kd, ks, sigma = out
-    else:
-        wi, wo, n, kd, ks, mu, sigma = out
-        mu = _index(mu, "mu")
-    return _torrance_sparrow(wi, wo, n, kd, ks, mu, _positive(sigma, "sigma"))
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"kd": kd, "ks": ks, "mu": mu, "sigma": sigma}, {"mu": _index, "sigma": _positive})
+    return _torrance_sparrow(wi, wo, n, p["kd"], p["ks"], p.get("mu"), p["sigma"])
 
 
 @eqx.filter_jit
@@ -851,10 +871,8 @@ def cook_torrance(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    wi, wo, n, kd, ks, m, mu = _prepare(
-        [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("kd", kd, "scalar"), ("ks", ks, "scalar"), ("m", m, "scalar"), ("mu", mu, "scalar")]
-    )
-    return _cook_torrance(wi, wo, n, kd, ks, _positive(m, "m"), _index(mu, "mu"))
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"kd": kd, "ks": ks, "m": m, "mu": mu}, {"m": _positive, "mu": _index})
+    return _cook_torrance(wi, wo, n, p["kd"], p["ks"], p["m"], p["mu"])
 
 
 @eqx.filter_jit
@@ -893,10 +911,8 @@ def ward_isotropic(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    wi, wo, n, rd, rs, al = _prepare(
-        [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("rho_d", rho_d, "scalar"), ("rho_s", rho_s, "scalar"), ("alpha", alpha, "scalar")]
-    )
-    return _ward(wi, wo, n, rd, rs, _positive(al, "alpha"))
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"rho_d": rho_d, "rho_s": rho_s, "alpha": alpha}, {"alpha": _positive})
+    return _ward(wi, wo, n, p["rho_d"], p["rho_s"], p["alpha"])
 
 
 @eqx.filter_jit
@@ -935,10 +951,8 @@ def oren_nayar(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    wi, wo, n, a, sg = _prepare(
-        [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("albedo", albedo, "scalar"), ("sigma", sigma, "scalar")]
-    )
-    return _oren_nayar(wi, wo, n, a, _require(sg, lambda x: x < 0, "sigma", ">= 0 (0: Lambertian)"))
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"albedo": albedo, "sigma": sigma}, {"sigma": _nonnegative_roughness})
+    return _oren_nayar(wi, wo, n, p["albedo"], p["sigma"])
 
 
 @eqx.filter_jit
@@ -975,10 +989,8 @@ def lafortune(
 
     **Returns:** `(...)`; 0 below either horizon.
     """
-    wi, wo, n, kd, lobes = _prepare(
-        [("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir"), ("kd", kd, "scalar"), ("lobes", lobes, "lobes")]
-    )
-    return _lafortune(wi, wo, n, kd, lobes)
+    wi, wo, n, p = _brdf_args(wi, wo, n, {"kd": kd, "lobes": lobes})
+    return _lafortune(wi, wo, n, p["kd"], p["lobes"])
 
 
 @eqx.filter_jit

@@ -34,7 +34,7 @@ from jaxtyping import Array, Float, Int
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._normal_equations import covariance_from_jacobian, inverse_sym2_diag, solve_grouped_shared, solve_sym2
-from ._results import Solution, Status, finish, rms_pair, signal_status, status_from_optimistix, worst
+from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
 
@@ -53,7 +53,8 @@ class BRDFResult(Solution):
     - `covariance`: `(p, p)` covariance of `(kd..., ks..., mu, sigma)`
       (homogeneous fits; the `(mu, sigma)` block for textured fits).
     - `status`: `Status`: the worst of non-finite values, a singular inner
-      $(K_d, K_s)$ system (`ill_conditioned`), all-zero data (`no_signal`),
+      $(K_d, K_s)$ system (`ill_conditioned`), all-zero data or all-zero
+      lighting in some channel (`no_signal`),
       and the simplex's and LM's own outcomes (`status_from_optimistix`).
     - `iterations`: simplex + LM steps.
     - `rms`: weighted RMS residual; `rel_rms`: `rms` / RMS of the data (never NaN).
@@ -199,7 +200,13 @@ def fit_brdf(
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
-    view_lightings(obs, lighting)  # one Lighting, or one per view: checked here, ValueError naming `lighting`
+    lights = view_lightings(obs, lighting)  # one Lighting, or one per view: checked here, ValueError naming `lighting`
+    for lit in [lighting] if lights is None else lights:
+        if lit.n_channels not in (1, obs.n_channels):
+            raise ValueError(f"`lighting` has {lit.n_channels} channels, the images in `obs` {obs.n_channels} (give the same C, or 1)")
+    max_steps = check_int(max_steps, "max_steps")
+    rtol = None if rtol is None else check_float(rtol, "rtol")
+    atol = None if atol is None else check_float(atol, "atol")
     if textured not in (None, "kd", "kd_ks"):
         raise ValueError(f"`textured` must be None, 'kd' or 'kd_ks', got {textured!r}")
     if textured is not None and (obs.texel is None or obs.n_texels < 1):
@@ -349,9 +356,13 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
 
     finite = jnp.isfinite(rss) & jnp.all(jnp.isfinite(kd)) & jnp.isfinite(sigma)
     data_ss = jnp.sum(w[:, None] * b * b)
+    # the model's own energy per channel: 0 under all-zero lighting (no pixel carries information on kd, ks)
+    d_fin, s_fin = terms.diffuse_unit(), terms.specular_unit(mu, sigma)
+    design_ss = jnp.min(jnp.sum(w[:, None] * (d_fin * d_fin + s_fin * s_fin), 0))
     status = worst(
         Status.where(finite, Status.converged, Status.nonfinite),
         signal_status(data_ss),
+        signal_status(design_ss),
         Status.where(bad, Status.ill_conditioned, Status.converged),
         st_nm,
         st_lm,

@@ -31,7 +31,7 @@ from ._data import Lighting, Observations, view_lightings
 def _is_number_list(x) -> bool:
     """A nested list of numbers (an SH array given as lists), not a sequence of `Lighting`."""
     return isinstance(x, (list, tuple)) and len(x) > 0 and not isinstance(x[0], Lighting)
-from ._results import Solution, Status, finish, rms_pair, signal_status, worst
+from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 
@@ -41,7 +41,8 @@ class BRDFSHResult(Solution):
     - `rho`: `(lmax+1, lmax+1, lmax+1, C)` the coefficients $\\hat\\rho_{lpq}$.
     - `rank`: `(C,)` numerical rank of the weighted design matrix.
     - `n_unknowns`: entries with $q \\le \\min(l, p)$ (static).
-    - `status`: `converged`, `nonfinite` or `no_signal` (a rank below
+    - `status`: `converged`, `nonfinite` or `no_signal` (all-zero data, or
+      all-zero lighting in some channel: a zero design; a rank below
       `n_unknowns` is reported by `rank`, the solution being minimum-norm).
     - `iterations`: 0 (a direct solve); `rms`, `rel_rms` (never NaN).
     - `stats`: `singular_values` `(C, n_unknowns)` of the design matrix
@@ -118,7 +119,7 @@ def fit_brdf_sh(
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
     if obs.transfer is not None or obs.reflected_visibility is not None:
         raise ValueError("fit_brdf_sh: the SH light-field model (eqs. 9, 10) has no shadowing; use a convex object")
-    lmax = int(lmax)
+    lmax = check_int(lmax, "lmax", lo=0)
     n = jaxsh.num_coeffs(lmax)
     lights = view_lightings(obs, lighting_sh, "lighting_sh") if not isinstance(lighting_sh, (Lighting, jax.Array, np.ndarray)) and not _is_number_list(lighting_sh) else None
     if isinstance(lighting_sh, Lighting):
@@ -172,7 +173,9 @@ def _fit_brdf_sh(obs, L, lmax, cols, rcond):
     nobs = jnp.sum((obs.weights > 0).astype(rss.dtype)) * c
     data_ss = jnp.sum(obs.weights[:, None] * obs.values**2)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
-    status = worst(Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite), signal_status(data_ss))
+    # sv[:, 0]: the largest singular value of each channel's design, 0 under all-zero lighting (no signal)
+    status = worst(Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite), signal_status(data_ss),
+                   signal_status(jnp.min(sv[:, 0])))
     return BRDFSHResult(rho=rho, rank=rank, n_unknowns=int(cols.shape[0]), status=status, rms=rms, rel_rms=rel,
                         iterations=jnp.asarray(0), stats={"singular_values": sv, "n_obs": nobs})
 

@@ -68,7 +68,7 @@ import jaxsh
 from ._data import Lighting, Observations, TorranceSparrow
 from ._lighting import lighting_from_gram
 from ._normal_equations import Gram, accumulate_gram, eq25_rows, inverse_spd_unrolled, pinv_psd, solve_spd_unrolled
-from ._results import Solution, Status, finish, rms_pair, signal_status, status_from_optimistix, worst
+from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
 class SourceEstimate(eqx.Module):
@@ -388,7 +388,9 @@ def factorize(
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
-    lmax = int(lmax)
+    lmax = check_int(lmax, "lmax", lo=0)
+    max_steps, chunk = check_int(max_steps, "max_steps"), check_int(chunk, "chunk")
+    search_pixels = None if search_pixels is None else check_int(search_pixels, "search_pixels")
     if lmax < 3:
         raise ValueError(f"`lmax` must be >= 3 for factorization, got {lmax}")
     if refine and not find_sigma:

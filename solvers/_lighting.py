@@ -44,8 +44,8 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
 from ._normal_equations import Gram, accumulate_gram, channel_system, eig_solve
-from ._results import (Solution, Status, finish, rms_pair, signal_status, status_from_lbfgsb, status_from_optimistix, worst,
-                       worst_batched)
+from ._results import (Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_lbfgsb,
+                       status_from_optimistix, worst, worst_batched)
 from ._threads import blas_single_thread
 
 
@@ -64,7 +64,8 @@ class LightingResult(Solution):
       drops below ~1, noise dominates (the $l^*$ of R&H sec. 6.2 in practice).
     - `status`: `converged`; `ill_conditioned` when some coefficient is
       undetermined (see `determined`, `singular_values`); `nonfinite`;
-      `no_signal` for all-zero data.
+      `no_signal` for all-zero data, or an all-zero BRDF ($K_d = K_s = 0$)
+      in some channel.
     - `iterations`: 0 (a direct solve); `rms`, `rel_rms` (never NaN).
     - `stats`: `rank` `(C,)` (eigenvalues kept), `n_obs` (weighted samples × channels).
     """
@@ -94,7 +95,7 @@ class LightingResult(Solution):
         return Lighting.unchecked(self.coeffs)
 
 
-def _check_brdf(brdf, name="brdf"):
+def _check_brdf(brdf, channels: int, name="brdf"):
     if not isinstance(brdf, TorranceSparrow):
         raise ValueError(f"`{name}` must be a solvers.TorranceSparrow, got {type(brdf).__name__}")
     if jnp.ndim(brdf.kd) != 1 or jnp.ndim(brdf.ks) != 1:
@@ -102,6 +103,10 @@ def _check_brdf(brdf, name="brdf"):
             f"`{name}.kd` and `{name}.ks` must be homogeneous (C,) arrays for inverse lighting "
             f"(R&H sec. 6.4: texture and lighting cannot be factored), got shapes {jnp.shape(brdf.kd)}, {jnp.shape(brdf.ks)}"
         )
+    for field in ("kd", "ks"):
+        k = jnp.shape(getattr(brdf, field))[0]
+        if k not in (1, channels):
+            raise ValueError(f"`{name}.{field}` has {k} channels, the images in `obs` {channels} (give C = {channels}, or 1)")
 
 
 @blas_single_thread
@@ -137,10 +142,11 @@ def inverse_lighting(
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
-    _check_brdf(brdf)
-    lmax = int(lmax)
-    if lmax < 0:
-        raise ValueError(f"`lmax` must be a non-negative int, got {lmax}")
+    _check_brdf(brdf, obs.n_channels)
+    lmax = check_int(lmax, "lmax", lo=0)
+    ridge = check_float(ridge, "ridge")
+    rcond = None if rcond is None else check_float(rcond, "rcond")
+    chunk = check_int(chunk, "chunk")
     c = obs.n_channels
     dt = obs.values.dtype
     kd = jnp.broadcast_to(jnp.asarray(brdf.kd, dt), (c,))
@@ -176,9 +182,12 @@ def lighting_from_gram(g: Gram, kd, ks, lmax, ridge, rcond) -> LightingResult:
     data_ss = jnp.sum(g.bb)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
     finite = jnp.all(jnp.isfinite(x)) & jnp.isfinite(rms)
+    # trace(A^T W A) per channel: 0 for an all-zero BRDF (kd = ks = 0), whose images carry no lighting information
+    design_ss = jnp.min(jnp.trace(ata, axis1=1, axis2=2))
     status = worst(
         Status.where(finite, Status.converged, Status.nonfinite),
         signal_status(data_ss),
+        signal_status(design_ss),
         Status.where(jnp.all(det), Status.converged, Status.ill_conditioned),
     )
     return LightingResult(coeffs=x.T, std_errors=se.T, determined=det.T, singular_values=sv, supported_lmax=supported,
@@ -194,17 +203,22 @@ class DualLightingResult(Solution):
 
     - `image`: `(H, W, C)` lat-long lighting in angular space (the filtered
       lighting seen in the mirror directions; texels no mirror direction
-      reaches hold the $l \\le 2$ field of `coeffs9`).
+      reaches hold the $l \\le 2$ field of `coeffs9`; in a channel with
+      $K_s = 0$ the whole image is that field).
     - `coeffs9`: `(9, C)` the frequency-space coefficients $L_{lm}$, $l \\le 2$,
       solving the consistency condition $L^1 = L^2$.
-    - `covered`: `(H, W)` bool, texels reached by a mirror direction.
+    - `covered`: `(H, W)` bool, texels reached by a mirror direction (in the
+      channels with $K_s > 0$; all False when $K_s = 0$ everywhere).
     - `consistency`: `(C,)` $|L^1 - L^2| / |L^1|$ of the returned image
       (0 up to round-off without `nonneg`; small with it).
     - `status`: the worst of the consistency solve's (lineax LU, via
       `status_from_optimistix`: `singular` for a singular system), the
       L-BFGS-B refinement's (`status_from_lbfgsb`: `max_steps_reached` when
       its projected-gradient error is still above its tolerance after
-      `maxiter` iterations), `nonfinite` and `no_signal`.
+      `maxiter` iterations), `nonfinite`, `no_signal` (all-zero data, or
+      $K_d = K_s = 0$ in some channel) and `ill_conditioned` for a channel
+      with $K_s = 0$ (Lambertian: only $l \\le 2$ is determined, R&H sec. 3;
+      see `inverse_lighting_dual`).
     - `rms`, `rel_rms` (never NaN), `iterations` (of the non-negative refinement; 0 without it).
     - `stats`: `lbfgsb_error` (final projected-gradient norm; 0 without
       `nonneg`), `lbfgsb_tol`, `n_obs`.
@@ -252,25 +266,33 @@ def inverse_lighting_dual(
     `solvers.SolveError` unless the status is `converged`.
 
     Convex objects only (the paper: with shadows $B_d$ no longer depends on
-    9 coefficients); `obs.transfer` must be None. `brdf`: homogeneous, with
-    $K_s > 0$. Returns `DualLightingResult`.
+    9 coefficients); `obs.transfer` must be None. `brdf`: homogeneous.
+    Returns `DualLightingResult`.
+
+    **Lambertian channels ($K_s = 0$).** There is no mirror term to carry
+    the image, and a Lambertian surface determines the lighting only up to
+    $l = 2$ (R&H sec. 3). In such a channel `coeffs9` is the weighted
+    least-squares fit of the diffuse term alone (eq. 21, minimum norm:
+    as `inverse_lighting(obs, brdf, 2)`), `image` its $l \\le 2$ field
+    (refined under $L \\ge 0$ with `nonneg`, tied to that field), and the
+    status is `ill_conditioned` (the angular detail is undetermined), never
+    an exception. With $K_d = K_s = 0$ the status is `no_signal`.
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
-    _check_brdf(brdf)
+    _check_brdf(brdf, obs.n_channels)
     if obs.transfer is not None:
-        raise ValueError("inverse_lighting_dual: concave objects (obs.transfer given) are not supported (R&H sec. 6.4)")
-    h = int(height)
-    if h < 4:
-        raise ValueError(f"`height` must be >= 4, got {h}")
+        raise ValueError("inverse_lighting_dual: concave objects (`obs.transfer` given) are not supported (R&H sec. 6.4)")
+    h = check_int(height, "height", lo=4)
+    maxiter = check_int(maxiter, "maxiter")
+    tol = check_float(tol, "tol")
     c = obs.n_channels
     dt = obs.values.dtype
     kd = jnp.broadcast_to(jnp.asarray(brdf.kd, dt), (c,))
     ks = jnp.broadcast_to(jnp.asarray(brdf.ks, dt), (c,))
-    if not bool(jnp.all(ks > 0)):
-        raise ValueError("inverse_lighting_dual needs `brdf.ks` > 0 in every channel (the mirror term carries the image)")
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
-    img, l9, cov, iters, error, lin = _dual(obs, kd, ks, mu, h, nonneg, int(maxiter), float(tol))
+    rcond = 1e-12 if dt == jnp.float64 else 1e-6
+    img, l9, cov, iters, error, lin = _dual(obs, kd, ks, mu, h, nonneg, int(maxiter), float(tol), rcond)
     res = _dual_finish(obs, kd, ks, mu, img, l9, cov, iters, error, lin, h, nonneg, int(maxiter), float(tol))
     return finish(res, throw)
 
@@ -298,8 +320,19 @@ def _dual_pieces(obs, kd, ks, mu, h):
     return f, tex, d, wv, y9, omega, b
 
 
+def _diffuse_l2(d, wv, b, kd, rcond):
+    """Per channel, the minimum-norm weighted LSQ $L_{lm}$, $l \\le 2$, of $K_d\\,d\\,L = B$ (eq. 21): `(9, C)` (0 where $K_d = 0$)."""
+    dw = d * wv[:, None]
+    evals, evecs = jnp.linalg.eigh(d.T @ dw)  # (9,), (9, 9): one system for every channel, scaled by kd^2
+    keep = evals > rcond * jnp.maximum(evals[-1], 0.0)
+    inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
+    x = evecs @ (inv[:, None] * (evecs.T @ (dw.T @ b)))  # (9, C) for unit kd
+    ok = kd > 0
+    return jnp.where(ok[None, :], x / jnp.where(ok, kd, 1.0)[None, :], 0.0)
+
+
 @eqx.filter_jit
-def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol):
+def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol, rcond):
     t_count = h * 2 * h
     f, tex, d, wv, y9, omega, b = _dual_pieces(obs, kd, ks, mu, h)
     c = b.shape[1]
@@ -309,12 +342,14 @@ def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol):
         return jax.ops.segment_sum(x, tex, num_segments=t_count)
 
     den = seg(wv[:, None] * g * g)  # (T, C)
-    covered = den[:, 0] > 0
-    den_s = jnp.where(den > 0, den, 1.0)
-    a = jnp.where(den > 0, seg(wv[:, None] * g * b) / den_s, 0.0)  # (T, C)
+    cov_c = den > 0  # (T, C): the same texels in every channel with ks > 0, none where ks = 0
+    covered = jnp.any(cov_c, axis=1)
+    lambertian = ks == 0  # (C,): no mirror term; the l <= 2 diffuse fit instead of the consistency solve
+    den_s = jnp.where(cov_c, den, 1.0)
+    a = jnp.where(cov_c, seg(wv[:, None] * g * b) / den_s, 0.0)  # (T, C)
     # L_map = a - M L1 on covered texels, M[t, c, :] = sum w g kd d / den; uncovered: L_map = y9 L1
     m = seg((wv[:, None] * g * kd[None, :])[:, :, None] * d[:, None, :]) / den_s[:, :, None]  # (T, C, 9)
-    m = jnp.where(covered[:, None, None], m, -y9[:, None, :])
+    m = jnp.where(cov_c[:, :, None], m, -y9[:, None, :])
     p = (omega[:, None] * y9).T  # (9, T) projection to l <= 2
     pa = p @ a  # (9, C)
     pm = jnp.einsum("it,tcj->cij", p, m)  # (C, 9, 9)
@@ -324,8 +359,12 @@ def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol):
         sol = lx.linear_solve(lx.MatrixLinearOperator(mat), rhs, lx.LU(), throw=False)
         return sol.value, status_from_optimistix(sol.result)
 
-    l1, lin = jax.vmap(consistency_solve)(eye[None] + pm, pa.T)
-    l1 = l1.T  # (9, C)
+    # a Lambertian channel's consistency matrix is I - P Y9 ~ 0: solve I x = 0 there and use the diffuse fit
+    mats = jnp.where(lambertian[:, None, None], eye[None], eye[None] + pm)
+    l1, lin = jax.vmap(consistency_solve)(mats, jnp.where(lambertian[:, None], 0.0, pa.T))
+    l1 = jnp.where(lambertian[None, :], _diffuse_l2(d, wv, b, kd, rcond), l1.T)  # (9, C)
+    # only l <= 2 is determined in a Lambertian channel (R&H sec. 3)
+    lin = jax.vmap(lambda lam, st: Status.where(lam, Status.ill_conditioned, st))(lambertian, lin)
     img = a - jnp.einsum("tcj,jc->tc", m, l1)  # (T, C)
     iters = jnp.asarray(0)
     error = jnp.zeros((), b.dtype)
@@ -339,7 +378,7 @@ def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol):
             pred = kd[None, :] * (d @ l9) + g * x[tex]
             r = sw[:, None] * (pred - b)
             # texels no pixel sees are tied (weakly) to the consistent phase-1 field
-            tie = jnp.where(covered[:, None], 0.0, x - img)
+            tie = jnp.where(cov_c, 0.0, x - img)
             return jnp.sum(r * r) / jnp.sum(wv) + 1e-6 * jnp.sum(tie * tie) / t_count
 
         x, iters, error = minimize_nonnegative(loss, jnp.maximum(img, 0.0), maxiter=maxiter, tol=tol)
@@ -355,6 +394,7 @@ def _dual_finish(obs, kd, ks, mu, img, l1, covered, iters, error, lin, h, nonneg
     rss = jnp.sum(wv[:, None] * (pred - b) ** 2)
     nobs = jnp.sum((wv > 0).astype(b.dtype)) * b.shape[1]
     data_ss = jnp.sum(wv[:, None] * b * b)
+    design_ss = jnp.min(kd**2 * jnp.sum(wv * jnp.sum(d * d, -1)) + jnp.sum(wv[:, None] * g * g, 0))  # 0: kd = ks = 0
     rms, rel = rms_pair(rss, data_ss, nobs)
     p = (omega[:, None] * y9).T
     l2 = p @ img
@@ -364,7 +404,8 @@ def _dual_finish(obs, kd, ks, mu, img, l1, covered, iters, error, lin, h, nonneg
     finite = jnp.all(jnp.isfinite(img)) & jnp.isfinite(rms)
     st_lin = worst_batched(lin)
     st_lbfgsb = status_from_lbfgsb(iters, error, maxiter, tol) if nonneg else Status.converged
-    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_lin, st_lbfgsb)
+    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss),
+                   signal_status(design_ss), st_lin, st_lbfgsb)
     return DualLightingResult(image=img.reshape(h, 2 * h, -1), coeffs9=l1, covered=covered.reshape(h, 2 * h),
                               consistency=consistency, status=status, rms=rms, rel_rms=rel, iterations=jnp.asarray(iters),
                               stats={"lbfgsb_error": error, "lbfgsb_tol": jnp.asarray(tol, b.dtype), "n_obs": nobs})

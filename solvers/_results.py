@@ -19,6 +19,8 @@ This mirrors `optimistix.RESULTS` / `throw=` (optimistix `_solution.py`).
 """
 
 
+import math
+import operator
 from typing import Any
 
 import equinox as eqx
@@ -177,8 +179,39 @@ def rms_pair(rss, data_ss, count) -> tuple[Float[Array, ""], Float[Array, ""]]:
 
 
 def signal_status(data_ss) -> Status:
-    """`no_signal` when the weighted sum of squares of the data is 0 (all-zero images or weights), else `converged`."""
+    """`no_signal` when a weighted sum of squares is 0, else `converged`.
+
+    Applied to the data (all-zero images or weights) and to the model's
+    design (all-zero lighting for `fit_brdf`/`fit_brdf_sh`, an all-zero BRDF
+    for `inverse_lighting`): either way the data carry no information about
+    the unknowns. Pass the smallest per-channel sum to flag a channel
+    without signal.
+    """
     return Status.where(jnp.asarray(data_ss) > 0, Status.converged, Status.no_signal)
+
+
+def check_int(value, name: str, lo: int = 1) -> int:
+    """A static int option `>= lo` (a bool, float or string is a `ValueError` naming `name`)."""
+    if isinstance(value, bool):
+        raise ValueError(f"`{name}` must be an int >= {lo}, got {value!r}")
+    try:
+        v = operator.index(value)
+    except TypeError:
+        raise ValueError(f"`{name}` must be a static Python int >= {lo}, got {value!r}") from None
+    if v < lo:
+        raise ValueError(f"`{name}` must be an int >= {lo}, got {v}")
+    return v
+
+
+def check_float(value, name: str, lo: float = 0.0, strict: bool = False) -> float:
+    """A finite float option `>= lo` (`> lo` with `strict`), else a `ValueError` naming `name`."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a finite number {'>' if strict else '>='} {lo:g}, got {value!r}") from None
+    if not math.isfinite(v) or v < lo or (strict and v == lo):
+        raise ValueError(f"`{name}` must be a finite number {'>' if strict else '>='} {lo:g}, got {v}")
+    return v
 
 
 def finish(result: Solution, throw: bool) -> Solution:

@@ -46,7 +46,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
-from ._results import Solution, Status, finish, rms_pair, worst
+from ._results import Solution, Status, check_float, check_int as _check_int, finish, rms_pair, worst
 
 
 # --------------------------------------------------------------------------- input checks
@@ -69,85 +69,39 @@ def _as_float(x, name):
     return x
 
 
-def _check_int(v, name, lo=1):
-    if isinstance(v, bool):
-        raise ValueError(f"`{name}` must be an int >= {lo}, got {v!r}")
-    try:
-        v = operator.index(v)
-    except TypeError:
-        raise ValueError(f"`{name}` must be a static Python int >= {lo}, got {v!r}") from None
-    if v < lo:
-        raise ValueError(f"`{name}` must be an int >= {lo}, got {v}")
-    return v
-
-
 def _check_inputs(points, values, scale, weights):
-    points = _as_float(points, "points")
-    if points.ndim != 2:
-        raise ValueError(f"`points` must have shape (N, d), got {tuple(points.shape)}")
-    n, d = points.shape
-    values = _as_float(values, "values")
-    single = values.ndim == 1
-    if single:
-        values = values[:, None]
-    if values.ndim != 2 or values.shape[0] != n:
-        raise ValueError(f"`values` must have shape ({n},) or ({n}, C) to match `points` {(n, d)}, got {tuple(values.shape)}")
-    if n < d + 1:
-        raise ValueError(
-            f"too few samples: `points` has {n} rows but a degree-1 polynomial in {d}-D needs at least d + 1 = {d + 1}"
-        )
-    if scale is None:
-        scale = jnp.ones((d,), dtype=points.dtype)
-    scale = _as_float(scale, "scale")
-    if scale.ndim == 0:
-        scale = jnp.broadcast_to(scale, (d,))
-    if scale.shape != (d,):
-        raise ValueError(f"`scale` must have shape ({d},) (the diagonal of M, eq. 11), got {tuple(scale.shape)}")
+    """Shapes and dtypes (`jaxsh.rbf_check_samples`, shared with `jaxsh.rbf_fit`), and the `(N,)` weights."""
+    points, values, scale, single = jaxsh.rbf_check_samples(points, values, scale)
+    n = points.shape[0]
     if weights is not None:
         weights = _as_float(weights, "weights")
         if weights.shape != (n,):
-            raise ValueError(f"`weights` must have shape ({n},), got {tuple(weights.shape)}")
-    arrays = [points, values]
-    dt = max((a.dtype for a in arrays), key=lambda t: jnp.dtype(t).itemsize)
-    points, values, scale = points.astype(dt), values.astype(dt), scale.astype(dt)
-    weights = None if weights is None else weights.astype(dt)
+            raise ValueError(f"`weights` must have shape ({n},) (one per row of `points`), got {tuple(weights.shape)}")
+        weights = weights.astype(points.dtype)
     return points, values, scale, weights, single
 
 
 def _check_values(p, v, s, w):
-    """Value checks on concrete input (NaNs, scale, duplicates, coplanarity)."""
+    """Value checks on concrete input: finite arrays, positive scale, non-negative weights (a `ValueError`)."""
     for name, a in (("points", p), ("values", v), ("scale", s), ("weights", w)):
         if a is not None and not np.all(np.isfinite(a)):
             bad = int(np.sum(~np.isfinite(a)))
             raise ValueError(f"`{name}` contains {bad} non-finite entries (NaN or inf)")
     if not np.all(s > 0):
         raise ValueError(f"`scale` (the diagonal of M, eq. 11) must be positive, got {s}")
-    n, d = p.shape
-    _, first, counts = np.unique(p, axis=0, return_index=True, return_counts=True)
-    if np.any(counts > 1):
-        i = int(first[np.argmax(counts > 1)])
-        dup = int(np.sum(counts[counts > 1] - 1))
-        raise ValueError(
-            f"`points` has {dup} duplicate rows (e.g. row {i}, {p[i].tolist()}); the RBF system (eq. 10) is "
-            "singular with repeated centres — merge or drop duplicate samples"
-        )
-    rank = _affine_rank(p)
-    if rank < d:
-        raise ValueError(
-            f"`points` are degenerate: their affine hull has dimension {rank} < d = {d} (e.g. coplanar data, or a "
-            "coordinate that is constant such as w in a single image), so the degree-1 polynomial part of eq. 10 "
-            "is not determined; drop that coordinate (cf. eq. 15) or add samples"
-        )
+    if w is not None and np.any(w < 0):
+        raise ValueError(f"`weights` must be >= 0 (residual weights, e.g. cos θi), got {float(np.min(w))}")
 
 
 def _affine_rank(p):
     c = p - p.mean(axis=0, keepdims=True)
     span = np.max(np.abs(c), axis=0)
-    c = c / np.where(span > 0, span, 1.0)[None, :]
-    if c.shape[0] > 4096:  # rank of the Gram matrix of a random subset is enough to spot exact degeneracy
-        sv = np.linalg.svd(c, compute_uv=False)
-    else:
-        sv = np.linalg.svd(c, compute_uv=False)
+    # a coordinate that varies only at rounding level (e.g. w = 1e-16 noise in one image) is constant: per-coordinate
+    # scaling would blow its noise up to full rank
+    size = np.maximum(np.max(np.abs(p), axis=0), span.max(initial=0.0))
+    const = span <= 1e3 * np.finfo(c.dtype).eps * size
+    c = np.where(const[None, :], 0.0, c / np.where(span > 0, span, 1.0)[None, :])
+    sv = np.linalg.svd(c, compute_uv=False)
     tol = sv.max(initial=0.0) * max(c.shape) * np.finfo(c.dtype).eps * 10
     return int(np.sum(sv > tol))
 
@@ -234,7 +188,10 @@ class SharingFit(Solution):
     - `status`: `Status.converged`; `Status.tolerance_not_reached` (the
       centre budget ran out before `tol`); `Status.singular` (the solve of
       eq. 10 gave a non-finite solution); `Status.nonfinite` (finite
-      solution, non-finite residual).
+      solution, non-finite residual); `Status.no_signal` (all-zero values
+      or weights); `Status.ill_conditioned` (degenerate data, see
+      `fit_sharing`: too few samples, affinely degenerate or duplicate
+      points — a fallback fit, never an exception).
     - `iterations`: greedy rounds after the initial fit (0 for interpolation).
     - `rms`: weighted RMS residual $\\sqrt{\\sum_{i,c}\\varepsilon_{ic}^2 / (N C)}$ over
       all `N` samples and `C` channels; `rel_rms`: `rms` over the weighted
@@ -243,7 +200,7 @@ class SharingFit(Solution):
       centre: exact at the samples).
     - `stats`: `n_centers` (K), `rss` ($\\sum\\varepsilon^2$), `data_ss`
       ($\\sum (w f)^2$), `count` ($N C$) — so fits can be combined with
-      `rms_pair`.
+      `rms_pair` — and `n_merged` (duplicate rows merged, 0 normally).
 
     `fit(points)` evaluates `fit.model(points)`. `status_code` (0, 1, 2 for
     converged, tolerance not reached, singular/non-finite) is kept,
@@ -354,11 +311,32 @@ def fit_sharing(
 
     **Returns:** a `SharingFit` (callable: `fit(x)` is `(M,)` or `(M, C)`).
 
-    **Raises:** `ValueError` for bad shapes or options, too few samples
-    ($N < d + 1$), NaN/inf input, non-positive `scale`, duplicate points and
-    degenerate (e.g. coplanar) points — checked on concrete input. A
-    singular system met inside the solve is reported as
-    `Status.singular` (or raised with `throw=True`).
+    **Raises:** `ValueError` for bad shapes or options (naming the
+    argument), NaN/inf input, non-positive `scale` and negative `weights` —
+    checked on concrete input.
+
+    **Degenerate data** is a status, never an exception (or `SolveError`
+    with `throw=True`); `rms`/`rel_rms` stay finite:
+
+    - too few samples ($N < d + 1$) or affinely degenerate points (their
+      affine hull has dimension $< d$: coplanar data, or a constant
+      coordinate such as $w$ in a single image): the degree-1 polynomial of
+      eq. 10 is not determined, so the result is the fallback of the
+      minimum-norm weighted least-squares affine fit $c_0 + c\\cdot\\vec q$
+      (one centre, kernel weight 0), status `ill_conditioned`. Drop the
+      constant coordinate (cf. eq. 15) or add samples;
+    - duplicate points (eq. 10 is singular with repeated centres): the
+      samples at each repeated point are merged — their weighted mean value
+      (plain mean where their weights are 0) with the sum of their weights
+      (their count without `weights`) — the merged samples are fitted
+      (`n_centers` capped at their number, `center_index` pointing at the
+      first of each merged group) and `rms`/`rel_rms` are measured on all
+      `N` samples as given; status `ill_conditioned`, `stats["n_merged"]`
+      the rows merged away and `stats["merged_status"]` the status of the
+      fit of the merged samples.
+
+    A singular system met inside the solve is reported as
+    `Status.singular`.
 
     Comparable to `scipy.interpolate.RBFInterpolator(kernel="linear", degree=1)`
     (isotropic, all points as centres).
@@ -366,8 +344,6 @@ def fit_sharing(
     points, values, scale, weights, single = _check_inputs(points, values, scale, weights)
     n, d = points.shape
     n_centers = _check_int(n_centers, "n_centers", lo=d + 1)
-    if n_centers > n:
-        raise ValueError(f"`n_centers` = {n_centers} exceeds the number of samples N = {n}")
     smoothing = jnp.asarray(smoothing, dtype=points.dtype)
     cp, cv, cs = _concrete(points), _concrete(values), _concrete(scale)
     cw = None if weights is None else _concrete(weights)
@@ -382,10 +358,24 @@ def fit_sharing(
         if not tol >= 0:
             raise ValueError(f"`tol` must be >= 0, got {tol}")
     chunk = jaxsh.rbf_auto_chunk(n_centers) if chunk is None else _check_int(chunk, "chunk")
+    n_add = None if n_add is None else _check_int(n_add, "n_add")
+    n_init = None if n_init is None else _check_int(n_init, "n_init", lo=d + 1)
     w = jnp.ones((n,), points.dtype) if weights is None else weights
     wv = values * w[:, None]
     data_ss = jnp.sum(wv * wv)
     count = n * values.shape[1]
+    # degenerate data (docstring): a fallback fit and a status, never an exception
+    if n < d + 1:
+        return finish(_affine_fallback(points, values, w, scale, single, chunk, data_ss, count), throw)
+    if n_centers > n:
+        raise ValueError(f"`n_centers` = {n_centers} exceeds the number of samples N = {n}")
+    _, first, inverse, counts = np.unique(cp, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    if np.any(counts > 1):
+        fit = _merged_fit(points, values, w, weights is not None, first, inverse.reshape(-1), n_centers, scale, smoothing,
+                          key, tol, n_init, n_add, chunk, single, data_ss, count)
+        return finish(fit, throw)
+    if _affine_rank(cp) < d:
+        return finish(_affine_fallback(points, values, w, scale, single, chunk, data_ss, count), throw)
 
     if n_centers == n:
         model = jaxsh.rbf_fit(points, values[:, 0] if single else values, scale, smoothing, chunk=chunk)
@@ -401,8 +391,8 @@ def fit_sharing(
         hist_rel = rms_pair(rss, data_ss, count)[1][None]
         reached = True
     else:
-        n_add = max(n_centers // 10, 1) if n_add is None else _check_int(n_add, "n_add")
-        n_init = max(n_centers // 10, d + 2) if n_init is None else _check_int(n_init, "n_init", lo=d + 1)
+        n_add = max(n_centers // 10, 1) if n_add is None else n_add
+        n_init = max(n_centers // 10, d + 2) if n_init is None else n_init
         n_init = min(n_init, n_centers)
         key = jax.random.PRNGKey(0) if key is None else key
         idx0 = _initial_subset(cp, n_init, n_centers, key)
@@ -427,6 +417,13 @@ def fit_sharing(
         if single:
             lam, poly = lam[:, 0], poly[:, 0]
         model = jaxsh.RBFModel(points[idx], lam, poly, scale, chunk=chunk)
+    fit = _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solved, reached)
+    return finish(fit, throw)
+
+
+def _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solved, reached, degenerate=False,
+                 n_merged=0) -> SharingFit:
+    """The `SharingFit` and its status (first match: singular, nonfinite, no_signal, ill_conditioned, tolerance)."""
     rms, rel = rms_pair(rss, data_ss, count)
     if not solved:
         status = Status.singular
@@ -434,14 +431,62 @@ def fit_sharing(
         status = Status.nonfinite
     elif not float(data_ss) > 0:
         status = Status.no_signal  # all-zero values (black images) or weights: the zero fit, no information
+    elif degenerate:
+        status = Status.ill_conditioned  # too few, duplicate or affinely degenerate points (fit_sharing docstring)
     elif not reached:
         status = Status.tolerance_not_reached
     else:
         status = Status.converged
-    stats = {"n_centers": jnp.asarray(model.n_centers), "rss": rss, "data_ss": data_ss, "count": jnp.asarray(count)}
-    fit = SharingFit(model=model, center_index=idx, history_centers=hist_c, history_rms=hist_rel, status=status,
-                     iterations=jnp.asarray(rounds), rms=rms, rel_rms=rel, stats=stats)
-    return finish(fit, throw)
+    stats = {"n_centers": jnp.asarray(model.n_centers), "rss": rss, "data_ss": data_ss, "count": jnp.asarray(count),
+             "n_merged": jnp.asarray(n_merged)}
+    return SharingFit(model=model, center_index=jnp.asarray(idx), history_centers=jnp.asarray(hist_c),
+                      history_rms=jnp.asarray(hist_rel), status=status, iterations=jnp.asarray(rounds), rms=rms,
+                      rel_rms=rel, stats=stats)
+
+
+def _weighted_rss(model, points, values, w):
+    r = (values - model(points).reshape(values.shape)) * w[:, None]
+    return jnp.sum(r * r)
+
+
+def _affine_fallback(points, values, w, scale, single, chunk, data_ss, count) -> SharingFit:
+    """Minimum-norm weighted LSQ $c_0 + c\\cdot\\vec q$ (one centre, zero kernel weight): eq. 10 is undetermined."""
+    p, v, wn = np.asarray(points), np.asarray(values), np.asarray(w)
+    mean = p.mean(axis=0)
+    a = np.concatenate([np.ones((p.shape[0], 1)), p - mean], axis=1) * wn[:, None]
+    x = np.linalg.lstsq(a, v * wn[:, None], rcond=None)[0]  # (d + 1, C), minimum norm
+    poly = np.concatenate([x[:1] - mean[None, :] @ x[1:], x[1:]], axis=0).astype(p.dtype)
+    lam = np.zeros((1, v.shape[1]), p.dtype)
+    if single:
+        lam, poly = lam[:, 0], poly[:, 0]
+    model = jaxsh.RBFModel(points[:1], jnp.asarray(lam), jnp.asarray(poly), scale, chunk=chunk)
+    rss = _weighted_rss(model, points, values, w)
+    rel = rms_pair(rss, data_ss, count)[1]
+    return _sharing_fit(model, np.zeros(1, np.int32), [1], rel[None], 0, rss, data_ss, count,
+                        _finite(model.poly), True, degenerate=True)
+
+
+def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, smoothing, key, tol, n_init, n_add, chunk,
+                single, data_ss, count) -> SharingFit:
+    """Duplicate points merged (weighted mean value, summed weight), fitted, measured on the samples as given."""
+    groups = first.shape[0]
+    v, wn = np.asarray(values), np.asarray(w)
+    wsum = np.bincount(inverse, weights=wn, minlength=groups)
+    cnt = np.bincount(inverse, minlength=groups)
+    mean_w = np.stack([np.bincount(inverse, weights=wn * v[:, c], minlength=groups) for c in range(v.shape[1])], 1)
+    mean_u = np.stack([np.bincount(inverse, weights=v[:, c], minlength=groups) for c in range(v.shape[1])], 1)
+    merged = np.where(wsum[:, None] > 0, mean_w / np.where(wsum > 0, wsum, 1.0)[:, None], mean_u / cnt[:, None])
+    merged = merged.astype(v.dtype)
+    d1 = points.shape[1] + 1
+    sub = fit_sharing(points[jnp.asarray(first)], merged[:, 0] if single else merged, max(min(n_centers, groups), d1),
+                      scale, smoothing, key, weights=(wsum if weighted else cnt).astype(v.dtype), tol=tol,
+                      n_init=None if n_init is None else max(min(n_init, groups), d1), n_add=n_add, chunk=chunk)
+    rss = _weighted_rss(sub.model, points, values, w)
+    fit = _sharing_fit(sub.model, first[np.asarray(sub.center_index)], sub.history_centers, sub.history_rms,
+                       sub.iterations, rss, data_ss, count, _finite(sub.model.weights, sub.model.poly), True,
+                       degenerate=True, n_merged=points.shape[0] - groups)
+    fit.stats["merged_status"] = sub.status  # the merged samples' own fit (e.g. tolerance_not_reached)
+    return fit
 
 
 def _finite(*arrays) -> bool:
@@ -546,6 +591,14 @@ def reflectance_samples(
     `(H, W)` bool; `xy` `(H, W, 2)`; `visible` `(L, H, W)` bool.
 
     **Returns:** `Samples` (concrete NumPy-backed arrays; call outside `jit`).
+
+    **Raises:** `ValueError` naming the argument for bad shapes, non-finite
+    images inside `mask`, zero or non-finite directions, irradiance not
+    $> 0$ — and, as a data *builder* (not a solver, so it has no status to
+    return), when no sample is left: "no usable samples" (every pixel
+    masked, shadowed, grazing or facing away). The fits take any non-empty
+    `Samples`; degenerate ones (too few, a constant $w$, duplicates) give a
+    status there (`fit_sharing`).
     """
     imgs = np.asarray(images, dtype=np.float64)
     if imgs.ndim == 3:
@@ -761,6 +814,11 @@ def render_rbf(model: jaxsh.RBFModel, normal, view, light, irradiance=1.0, mask=
     return f * scale[..., None] * e
 
 
+def _check_samples(samples):
+    if not isinstance(samples, Samples):
+        raise ValueError(f"`samples` must be a solvers.Samples (see reflectance_samples), got {type(samples).__name__}")
+
+
 def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothing=0.0, key=None, *, throw: bool = False,
                     **kwargs) -> RBFReflectance:
     """Homogeneous BRDF $\\tilde f(u, v, w)$ of Zickler 2006 eq. 12, $M = \\mathrm{diag}(1, 1, m_w)$.
@@ -770,6 +828,8 @@ def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothin
     `chunk`). The paper's $m_w$ is 0.1–0.5. `throw=True` raises
     `SolveError` unless the fit's status is `Status.converged`.
     """
+    _check_samples(samples)
+    m_w = check_float(m_w, "m_w", strict=True)
     if samples.points.shape[1] != 3:
         raise ValueError(f"`samples` must have (u, v, w) points (N, 3), got {tuple(samples.points.shape)}")
     fit = fit_sharing(samples.points, samples.values, n_centers, scale=jnp.asarray([1.0, 1.0, m_w]),
@@ -786,6 +846,8 @@ def fit_sbrdf(samples: Samples, n_centers: int, m_xy: float = 0.3, m_w: float = 
     paper's $m_{xy}$ is 0.2–0.4 for $(x, y) \\in [0, 1]^2$. Extra keyword
     arguments and `throw` as in `fit_homogeneous`.
     """
+    _check_samples(samples)
+    m_xy, m_w = check_float(m_xy, "m_xy", strict=True), check_float(m_w, "m_w", strict=True)
     if samples.points.shape[1] != 5:
         raise ValueError(f"`samples` must have (x, y, u, v, w) points (N, 5), got {tuple(samples.points.shape)}")
     fit = fit_sharing(samples.points, samples.values, n_centers,
@@ -878,6 +940,7 @@ def fit_dichromatic(
     Pixels never lit keep the median albedo of the others. `throw=True`
     raises `SolveError` unless both fits converged (`fit_homogeneous`).
     """
+    m_xy, m_w = check_float(m_xy, "m_xy", strict=True), check_float(m_w, "m_w", strict=True)
     dimg = np.asarray(diffuse_images, np.float64)
     simg = np.asarray(specular_images, np.float64)
     if dimg.ndim != 4 or dimg.shape[-1] != 3 or simg.shape != dimg.shape:
@@ -973,6 +1036,7 @@ def fit_one_image(
     **Arguments:** `diffuse_image`, `specular_image` `(H, W, 3)`; `color`
     `(3,)`; `light` `(3,)`; the rest (and `throw`) as in `fit_dichromatic`.
     """
+    m_xy = check_float(m_xy, "m_xy", strict=True)
     dimg = np.asarray(diffuse_image, np.float64)
     simg = np.asarray(specular_image, np.float64)
     if dimg.ndim != 3 or dimg.shape[-1] != 3 or simg.shape != dimg.shape:

@@ -66,3 +66,14 @@ def write_png16(path, img):
     assert out.open(str(path), oiio.ImageSpec(code.shape[1], code.shape[0], code.shape[2], "uint16"))
     assert out.write_image(code)
     out.close()
+
+
+def hemisphere_normals(size=8):
+    """Normals `(size, size, 3)` of a hemisphere seen from +z and its `(size, size)` mask (+z outside it)."""
+    y, x = np.mgrid[-1 : 1 : size * 1j, -1 : 1 : size * 1j] * 0.9
+    r2 = x * x + y * y
+    mask = r2 < 0.8
+    z = np.sqrt(np.clip(1 - r2, 0, None))
+    normal = np.stack([x, y, z], -1)
+    normal[~mask] = [0.0, 0.0, 1.0]
+    return normal / np.linalg.norm(normal, axis=-1, keepdims=True), mask

@@ -1,0 +1,204 @@
+"""Degenerate data (issue 12): every solver returns a `Status` and a finite `rel_rms`, never an exception.
+
+Too few samples, duplicate or affinely degenerate points for the RBF fits
+(`fit_sharing` and the reflectance-sharing models through it), all-zero
+lighting for `fit_brdf` / `fit_brdf_sh` (`no_signal`), an all-zero BRDF for
+inverse lighting (`no_signal`) and a Lambertian BRDF ($K_s = 0$) for the dual
+method (`ill_conditioned`, the $l \\le 2$ fallback). Expected values are closed
+forms (an affine function, the mean of duplicate samples) or the known
+lighting that rendered the images. Bad shapes and options (a `ValueError`)
+are in tests/test_bad_input_solvers.py.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsh
+import solvers
+
+from .helpers import hemisphere_normals as _hemisphere
+
+
+def _ok(res, expected=None):
+    """The result carries a `Status`, finite `rms` and `rel_rms`; returns the status name."""
+    assert isinstance(res.status, solvers.Status)
+    name = res.status_name
+    if expected is not None:
+        assert name == expected, name
+    assert np.isfinite(float(res.rms)) and np.isfinite(float(res.rel_rms)), (name, res.rms, res.rel_rms)
+    return name
+
+
+def _affine(p):
+    return 0.7 + p @ np.array([0.5, -0.2, 0.3])[: p.shape[1]]
+
+
+# --------------------------------------------------------------------------- fit_sharing
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_fit_sharing_too_few_samples(n):
+    """N < d + 1: the minimum-norm affine fit, exact at the samples (an affine function through <= d + 1 points)."""
+    p = np.random.default_rng(n).uniform(size=(n, 3))
+    y = _affine(p) + np.random.default_rng(9).normal(size=n)  # any values: n <= d + 1 points are interpolated
+    fit = solvers.fit_sharing(p, y, 4)
+    _ok(fit, "ill_conditioned")
+    np.testing.assert_allclose(np.asarray(fit(p)), y, atol=1e-12)
+    assert float(fit.rms) < 1e-12
+    with pytest.raises(solvers.SolveError, match="ill_conditioned"):
+        solvers.fit_sharing(p, y, 4, throw=True)
+
+
+def test_fit_sharing_one_sample_is_a_constant():
+    p = np.array([[0.2, 0.4, 0.6]])
+    fit = solvers.fit_sharing(p, np.array([[1.5, -2.0]]), 4)
+    _ok(fit, "ill_conditioned")
+    q = np.random.default_rng(0).uniform(size=(5, 3))
+    np.testing.assert_allclose(np.asarray(fit(q)), np.tile([1.5, -2.0], (5, 1)), atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["constant_w", "coplanar"])
+def test_fit_sharing_affinely_degenerate(kind):
+    """A constant coordinate (one image) or coplanar points: the affine LSQ fit reproduces an affine function."""
+    rng = np.random.default_rng(1)
+    p = rng.uniform(size=(30, 3))
+    if kind == "constant_w":
+        p[:, 2] = 0.5
+    else:
+        p[:, 2] = 0.3 * p[:, 0] - 0.2 * p[:, 1]
+    y = _affine(p)
+    fit = solvers.fit_sharing(p, y, 30)
+    _ok(fit, "ill_conditioned")
+    assert float(fit.rel_rms) < 1e-12
+    q = rng.uniform(size=(6, 3))
+    q[:, 2] = 0.5 if kind == "constant_w" else 0.3 * q[:, 0] - 0.2 * q[:, 1]  # on the samples' hull
+    np.testing.assert_allclose(np.asarray(fit(q)), _affine(q), atol=1e-12)
+    _ok(solvers.fit_sharing(p, y, 10), "ill_conditioned")  # greedy budget: the same fallback
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_fit_sharing_duplicates_are_merged(weighted):
+    """Repeated points: their (weighted) mean is interpolated; rms is measured on the samples as given."""
+    rng = np.random.default_rng(2)
+    p = rng.uniform(size=(20, 3))
+    y = np.sin(3 * p[:, 0]) + p[:, 1]
+    dup = np.concatenate([p, p[:2]])
+    yd = np.concatenate([y, y[:2] + np.array([0.2, -0.4])])
+    w = np.concatenate([np.full(20, 1.0), [3.0, 1.0]]) if weighted else np.ones(22)
+    fit = solvers.fit_sharing(dup, yd, 22, weights=w if weighted else None)
+    _ok(fit, "ill_conditioned")
+    assert int(fit.stats["n_merged"]) == 2
+    # closed form: the merged value at a repeated point is the weighted mean of its samples
+    want = (w[:2] * y[:2] + w[20:] * yd[20:]) / (w[:2] + w[20:])
+    np.testing.assert_allclose(np.asarray(fit(p[:2])), want, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(fit(p[2:])), y[2:], atol=1e-9)  # the others are interpolated
+    r = (yd - np.concatenate([np.asarray(fit(p)), want])) * w
+    np.testing.assert_allclose(float(fit.rms), np.sqrt(np.sum(r * r) / 22), rtol=1e-9)
+    assert np.all(np.asarray(fit.center_index) < 22)
+
+
+def test_fit_sharing_all_points_equal():
+    p = np.tile([[0.1, 0.2, 0.3]], (6, 1))
+    v = np.arange(6.0)
+    fit = solvers.fit_sharing(p, v, 4)
+    _ok(fit, "ill_conditioned")
+    np.testing.assert_allclose(float(fit(p[0])), v.mean(), atol=1e-12)
+
+
+def test_sharing_models_on_degenerate_samples():
+    """One image (constant w), a few pixels: a status from every model, never an exception."""
+    normal, mask = _hemisphere()
+    img = np.ones((1,) + mask.shape + (3,))
+    one = solvers.reflectance_samples(img, normal, [0.0, 0.0, 1.0], [[0.0, 0.0, 1.0]], mask=mask)
+    assert _ok(solvers.fit_homogeneous(one, 8)) == "ill_conditioned"
+    xy = np.stack(np.meshgrid(np.linspace(0, 1, 8), np.linspace(0, 1, 8)), -1)
+    one_xy = solvers.reflectance_samples(img, normal, [0.0, 0.0, 1.0], [[0.0, 0.0, 1.0]], mask=mask, xy=xy)
+    assert _ok(solvers.fit_sbrdf(one_xy, 8)) == "ill_conditioned"
+    few = np.zeros_like(mask)
+    few[3, 3:5] = True  # two pixels
+    lights = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8]])
+    imgs = np.ones((3,) + mask.shape + (3,))
+    res = solvers.fit_dichromatic(imgs, imgs, np.ones((3, 3)), normal, [0.0, 0.0, 1.0], lights, xy, 6, 6, mask=few)
+    _ok(res, "ill_conditioned")
+    res = solvers.fit_one_image(imgs[0], imgs[0], np.ones(3), normal, [0.0, 0.0, 1.0], lights[1], xy, 6, mask=few)
+    _ok(res, "ill_conditioned")
+
+
+def test_reflectance_samples_without_samples_is_a_named_error():
+    """A data builder, not a solver: no usable sample is a ValueError saying why (documented)."""
+    normal, mask = _hemisphere()
+    imgs = np.ones((1,) + mask.shape)
+    with pytest.raises(ValueError, match="no usable samples"):
+        solvers.reflectance_samples(imgs, normal, [0.0, 0.0, 1.0], [[0.0, 0.0, -1.0]], mask=mask)  # light behind
+
+
+# --------------------------------------------------------------------------- zero lighting, zero BRDF, Lambertian
+
+
+@pytest.fixture(scope="module")
+def gbs():
+    cams = solvers.view_cameras(2, 8)
+    return [jaxsh.sphere_gbuffer(c, jnp.zeros(3), jnp.asarray(1.0)) for c in cams]
+
+
+@pytest.fixture(scope="module")
+def ones_obs(gbs):
+    return solvers.observations(gbs, [np.ones(np.asarray(g.mask).shape + (3,)) for g in gbs])
+
+
+def test_fit_brdf_zero_lighting_is_no_signal(ones_obs):
+    _ok(solvers.fit_brdf(ones_obs, jaxsh.Lighting(np.zeros((9, 3))), max_steps=10), "no_signal")
+    one_dark = np.eye(9, 3) * [1.0, 1.0, 0.0]  # channel 2 unlit
+    _ok(solvers.fit_brdf(ones_obs, jaxsh.Lighting(one_dark), max_steps=10), "no_signal")
+
+
+def test_fit_brdf_sh_zero_lighting_is_no_signal(ones_obs):
+    _ok(solvers.fit_brdf_sh(ones_obs, np.zeros((9, 3)), 2), "no_signal")
+    _ok(solvers.fit_brdf_sh(ones_obs, jaxsh.Lighting(np.zeros((9, 3))), 2), "no_signal")
+
+
+@pytest.mark.parametrize("solver", ["inverse_lighting", "inverse_lighting_dual"])
+def test_inverse_lighting_zero_brdf_is_no_signal(ones_obs, solver):
+    zero = solvers.TorranceSparrow(np.zeros(3), np.zeros(3), 1.5, 0.2)
+    res = solvers.inverse_lighting(ones_obs, zero, 2) if solver == "inverse_lighting" else \
+        solvers.inverse_lighting_dual(ones_obs, zero, 8, maxiter=10)
+    _ok(res, "no_signal")
+
+
+@pytest.fixture(scope="module")
+def lambertian_capture(gbs):
+    rng = np.random.default_rng(3)
+    sh = rng.normal(size=(9, 3)) * 0.2
+    sh[0] = 1.0
+    brdf = solvers.TorranceSparrow(np.array([0.6, 0.45, 0.3]), np.zeros(3), 1.6, 0.2)
+    imgs = [solvers.predict(brdf, jaxsh.Lighting(sh), g.normal, g.view, mask=g.mask) for g in gbs]
+    return solvers.observations(gbs, imgs), brdf, sh
+
+
+def test_inverse_lighting_dual_lambertian(lambertian_capture):
+    """K_s = 0: no exception; `coeffs9` is the l <= 2 lighting that rendered the images, status ill_conditioned."""
+    obs, brdf, sh = lambertian_capture
+    res = solvers.inverse_lighting_dual(obs, brdf, 8, nonneg=False)
+    _ok(res, "ill_conditioned")
+    np.testing.assert_allclose(np.asarray(res.coeffs9), sh, atol=1e-9)
+    assert not np.asarray(res.covered).any()
+    # the image is the l <= 2 field of coeffs9 (independently: SH synthesis at the texel directions)
+    dirs = jaxsh.latlong_directions(8, 16).reshape(-1, 3)
+    field = np.asarray(jaxsh.real_sh(dirs, 2)) @ sh
+    np.testing.assert_allclose(np.asarray(res.image).reshape(-1, 3), field, atol=1e-9)
+    with pytest.raises(solvers.SolveError, match="ill_conditioned"):
+        solvers.inverse_lighting_dual(obs, brdf, 8, nonneg=False, throw=True)
+
+
+def test_inverse_lighting_dual_one_lambertian_channel(lambertian_capture, gbs):
+    """K_s = 0 in one channel only: that channel takes the diffuse fallback, the others the dual method."""
+    _, _, sh = lambertian_capture
+    brdf = solvers.TorranceSparrow(np.array([0.6, 0.45, 0.3]), np.array([0.3, 0.0, 0.3]), 1.6, 0.2)
+    imgs = [solvers.predict(brdf, jaxsh.Lighting(sh), g.normal, g.view, mask=g.mask) for g in gbs]
+    obs = solvers.observations(gbs, imgs)
+    res = solvers.inverse_lighting_dual(obs, brdf, 8, nonneg=False)
+    _ok(res, "ill_conditioned")
+    np.testing.assert_allclose(np.asarray(res.coeffs9)[:, 1], sh[:, 1], atol=1e-9)
+    assert np.asarray(res.covered).any()
+    assert np.all(np.isfinite(np.asarray(res.image)))
