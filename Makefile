@@ -23,10 +23,10 @@ demo: install
 
 # The CI suite: everything but tests marked slow; notebooks run small.
 test: install-tests
-	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile --nbmake $(PYTEST_ARGS) tests notebooks
+	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -m "not slow" -n 2 --nbmake $(PYTEST_ARGS) tests notebooks
 
 test-all: install-tests
-	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake tests notebooks
+	$(BIN)/python -m pytest -n 2 --nbmake tests notebooks
 
 bench: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[benchmarks]"
