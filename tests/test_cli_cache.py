@@ -37,7 +37,10 @@ def test_command_line_fills_and_reuses_its_cache(tmp_path):
     r1 = _run(["render", str(p), "--out", str(tmp_path / "a")], env)
     assert r1.returncode == 0, r1.stderr
     entries = set(os.listdir(tmp_path / "xla"))
-    assert any("render_practical" in e for e in entries), sorted(entries)[:10]  # the renderer's program is cached
+    # the G-buffer's and the renderer's programs are cached (the renderer: `_render_practical`, or its
+    # per-pixel and combining programs)
+    assert any("sphere_gbuffer" in e for e in entries), sorted(entries)[:10]
+    assert any("render" in e or "combine" in e for e in entries), sorted(entries)[:10]
     r2 = _run(["render", str(p), "--out", str(tmp_path / "b")], env)
     assert r2.returncode == 0, r2.stderr
     a = jaxsh.io.read_image(tmp_path / "a" / "view_000.exr")
