@@ -33,6 +33,7 @@ bench: $(BIN)/python
 	$(BIN)/python benchmarks/bench_sh.py
 	$(BIN)/python benchmarks/bench_convolution.py
 	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_render_table.py
 	$(BIN)/python benchmarks/bench_mitsuba.py
 	$(BIN)/python benchmarks/bench_sharing.py
 	$(BIN)/python benchmarks/bench_inverse.py

@@ -45,7 +45,6 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxsh  # noqa: E402
-from jaxsh._practical import _table_rows  # noqa: E402  (to print the grid the default path uses)
 
 warnings.filterwarnings("ignore", message=".*64-bit precision.*")
 
@@ -139,7 +138,6 @@ def main():
     def ours(method="auto"):
         return lambda: jaxsh.render_practical(g.normal, g.view, KD, KS, MU, SIGMA, mask=g.mask, method=method, **light).total
 
-    rows = _table_rows(LMAX, SIGMA)
     tab = Table(f"render_practical, sphere {size}x{size} ({npx} px), sky SH lmax {LMAX} + sun, sigma {SIGMA} (CPU, float64)",
                 ["renderer", "warm", "first", "max|diff|/max vs exact", "RMS rel vs exact", "note"])
     t_first_d, t_warm_d = time_jax(ours(), repeats=5)
@@ -157,7 +155,7 @@ def main():
     t_warm_d = min(t_warm_d, time_jax(ours(), repeats=5)[1])
     acc_d, acc_p = accuracy(b_default, b_exact), accuracy(b_peer, b_exact)
     tab.add("render_practical (default: table)", fmt_t(t_warm_d), fmt_t(t_first_d), fmt_e(acc_d[0]), fmt_e(acc_d[1]),
-            f"bicubic, {rows}x{2 * rows} grid")
+            "bicubic table (grid from the error bound, docs/performance.md)")
     tab.add("render_practical(method='exact')", fmt_t(t_warm_e), fmt_t(t_first_e), "0", "0",
             f"(lmax+1)^2 = {(LMAX + 1) ** 2} SH per pixel")
     tab.add("NumPy peer (bilinear lookup)", fmt_t(t_warm_p), fmt_t(t_first_p), fmt_e(acc_p[0]), fmt_e(acc_p[1]),
