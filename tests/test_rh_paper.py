@@ -203,3 +203,51 @@ def test_textured_kd_ks_fit_predicts_the_object_under_a_new_light():
           f"mu {float(res.brdf.mu):.3f}; new light: fitted {err:.4%}, true params {err_floor:.4%}")
     assert err < 0.02, err  # measured 0.93 % (true parameters: 0.90 %)
     assert err < err_floor + 0.003
+
+
+# --------------------------------------------------------------------------- fit_brdf_sh on reference images (sec. 6.1, fig. 6)
+
+
+def test_fit_brdf_sh_on_reference_images_fig6():
+    """Fig. 6 (bottom) analogue on data with model error: a Cook-Torrance sphere (Beckmann, Smith G,
+    Fresnel at the half angle; not representable at order 6) rendered by the reference renderer under the
+    low-frequency area sources, SH BRDF fitted to order 6 (eqs. 9, 10), five views at one elevation. Under the same low-frequency
+    lighting a held-out view is predicted closely ("only the low-frequency components of the BRDF are
+    important"); lit by a directional source at the viewpoint, the truncated BRDF rings: negative radiance
+    and an error of the order of the signal."""
+    truth = solvers.TorranceSparrow(jnp.array([0.15]), jnp.array([0.4]), jnp.asarray(1.6), jnp.asarray(0.15))
+    disks, _ = solvers.default_sources()
+    disks = (disks[0], disks[1], disks[2][:, :1])
+    cap = solvers.sphere_capture(truth, size=32, n_views=5, noise=0.0, azimuths=np.linspace(0, 2 * np.pi, 5, endpoint=False),
+                                 elevation=0.6, sources=(disks, None), disk_nodes=(24, 48), brdf_model="cook_torrance")
+    obs = solvers.observations(cap.gbuffers, [im[..., :1] for im in cap.clean])
+    lmax = 6
+    sh = np.asarray(cap.lighting.total_sh(lmax))[:, :1]
+    # truncated SVD (rcond 1e-2, rank 76 of 140): with the default 1e-10 (rank 137) the weakly determined
+    # coefficients absorb the model error, and the held-out view is off by 9.5 % (143 % at elevation 0.3)
+    # and the directional rendering by ~10x the signal (measured)
+    res = solvers.fit_brdf_sh(obs, sh, lmax, rcond=1e-2)
+    assert solvers.status_name(res.status) == "converged"
+    assert float(res.rel_rms) < 0.1  # measured 0.078: the order-6 model error on these images
+    cam = solvers.view_cameras(1, 32, azimuths=[0.6], elevation=0.6)[0]  # between two training views
+    g = jaxsh.sphere_gbuffer(cam, np.zeros(3), 1.0)
+    m = np.asarray(g.mask)
+    n, v = np.asarray(g.normal)[m], np.asarray(g.view)[m]
+    ref = np.asarray(jaxsh.render_reference(n, v, truth.kd, truth.ks, truth.mu, truth.sigma, disks=disks, disk_nodes=(24, 48),
+                                            brdf_model="cook_torrance"))[:, :1]
+    pred = np.asarray(solvers.predict_brdf_sh(res.rho, sh, n, v))
+    err_low = np.sqrt(np.mean((pred - ref) ** 2)) / np.sqrt(np.mean(ref**2))
+    # a directional source at the viewpoint (fig. 6 bottom right)
+    d = v[:1]  # orthographic camera: one view direction
+    e = np.array([[3.0]])
+    ref_d = np.asarray(jaxsh.render_reference(n, v, truth.kd, truth.ks, truth.mu, truth.sigma, directional=(d, e),
+                                              brdf_model="cook_torrance"))
+    pred_d = np.asarray(solvers.predict_brdf_sh(res.rho, np.asarray(jaxsh.directional_light_sh(d, e, lmax)), n, v))
+    err_dir = np.sqrt(np.mean((pred_d - ref_d) ** 2)) / np.sqrt(np.mean(ref_d**2))
+    neg = -pred_d.min() / ref_d.max()
+    print(f"fit_brdf_sh order {lmax}: rank {np.asarray(res.rank)} / {res.n_unknowns}, train rel rms {float(res.rel_rms):.4f}; "
+          f"held-out view, same area light: {err_low:.4f}; directional at the viewpoint: {err_dir:.4f}, "
+          f"most negative radiance {neg:.3f} of the true peak")
+    assert err_low < 0.1, err_low  # measured 0.075
+    assert err_dir > 5 * err_low  # measured 0.68
+    assert neg > 0.05  # measured 0.13: ringing
