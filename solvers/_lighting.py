@@ -6,7 +6,7 @@ pixel is linear in the lighting coefficients $L_{lm}$, $l \\le l^*$:
 $$B(x) = \\sum_{l \\le l^*}\\sum_m L_{lm}\\Big(K_d\\,\\Lambda_l\\hat\\rho_l\\,Y_{lm}(n)
    + K_s F(\\mu,\\theta_o)\\,Y_{lm}(R)\\Big),$$
 
-the first term only for $l \\le 2$ (eq. 21; with shadows, the transfer
+the first term only for $l \\le 2$ by default (eq. 21; with shadows, the transfer
 vector $T_{lm}(x)$ of sec. 6.4 replaces $\\Lambda_l\\hat\\rho_l Y_{lm}(n)$, and
 the reflected-ray visibility multiplies the second). `inverse_lighting`
 solves this weighted least-squares problem per colour channel from the
@@ -18,6 +18,17 @@ the paper, the recovered lighting is the lighting *filtered* by the specular
 lobe (the roughness is not used); `deconvolve=True` includes the filter
 $e^{-(\\sigma l)^2}$ (eq. 20) in the model and recovers the unfiltered
 lighting up to $l^*$ instead.
+
+**The literal eq. 25.** As printed, eq. 25 sums the diffuse term
+$K_d\\Lambda_l\\hat\\rho_l Y_{lm}(n)$ up to $l^*$, not 2. With
+`diffuse_bands="literal"` the diffuse rows run over every $l \\le l^*$, with
+the clamped-cosine coefficients of thesis eq. 3.32; then nothing about the
+Lambertian low-pass is built in and the solve *finds* it (thesis ch. 3,
+around eq. 3.33): the columns of odd $l > 1$ vanish identically
+($\\Lambda_l\\hat\\rho_l = 0$: ill-posed, zero singular values), those of even
+$l > 2$ are multiplied by $|\\Lambda_l\\hat\\rho_l| \\le 0.131$, decaying like
+$l^{-5/2}$ (ill-conditioned: tiny but nonzero singular values). The default
+`"l2"` is the paper's practical form (eq. 21).
 
 **Dual angular / frequency-space lighting (sec. 6.2, fig. 8).**
 `inverse_lighting_dual` subtracts the diffuse part predicted by 9
@@ -43,7 +54,7 @@ import lineax as lx
 import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
-from ._normal_equations import Gram, accumulate_gram, channel_system, eig_solve
+from ._normal_equations import Gram, accumulate_gram, channel_system, eig_solve, eq25_rows
 from ._results import (Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_lbfgsb,
                        status_from_optimistix, worst, worst_batched)
 from ._threads import blas_single_thread
@@ -119,6 +130,7 @@ def inverse_lighting(
     ridge: float = 0.0,
     rcond: float | None = None,
     chunk: int = 4096,
+    diffuse_bands: str = "l2",
     throw: bool = False,
 ) -> LightingResult:
     """Recover SH lighting coefficients $L_{lm}$, $l \\le$ `lmax`, for a known BRDF (R&H eq. 25).
@@ -136,6 +148,10 @@ def inverse_lighting(
     - `rcond`: eigenvalues below `rcond × largest` are treated as zero
       (default 1e-12 in float64, 1e-6 in float32).
     - `chunk`: pixels per chunk of the normal-equation accumulation.
+    - `diffuse_bands`: `"l2"` (default: the diffuse term for $l \\le 2$ only,
+      eq. 21) or `"literal"` (eq. 25 as printed: the diffuse term up to
+      `lmax`; module docstring). `"literal"` needs a convex object
+      (`obs.transfer` holds $l \\le 2$ only).
     - `throw`: raise `solvers.SolveError` unless the status is `converged`.
 
     **Returns:** `LightingResult` (module docstring).
@@ -147,6 +163,11 @@ def inverse_lighting(
     ridge = check_float(ridge, "ridge")
     rcond = None if rcond is None else check_float(rcond, "rcond")
     chunk = check_int(chunk, "chunk")
+    if diffuse_bands not in ("l2", "literal"):
+        raise ValueError(f"`diffuse_bands` must be 'l2' or 'literal', got {diffuse_bands!r}")
+    if diffuse_bands == "literal" and obs.transfer is not None:
+        raise ValueError("`diffuse_bands='literal'` needs a convex object: `obs.transfer` holds the l <= 2 "
+                         "transfer vector only (give obs without transfer, or diffuse_bands='l2')")
     c = obs.n_channels
     dt = obs.values.dtype
     kd = jnp.broadcast_to(jnp.asarray(brdf.kd, dt), (c,))
@@ -154,32 +175,77 @@ def inverse_lighting(
     if rcond is None:
         rcond = 1e-12 if dt == jnp.float64 else 1e-6
     res = _inverse_lighting(obs, kd, ks, None if brdf.mu is None else jnp.asarray(brdf.mu, dt),
-                            jnp.asarray(brdf.sigma, dt), lmax, deconvolve, float(ridge), float(rcond), int(chunk))
+                            jnp.asarray(brdf.sigma, dt), lmax, deconvolve, float(ridge), float(rcond), int(chunk),
+                            diffuse_bands == "literal")
     return finish(res, throw)
 
 
 @eqx.filter_jit
-def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, chunk):
+def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, chunk, literal=False):
     filt = None
     if deconvolve:
         filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
+    if literal:
+        ata, atb, bb, count = _literal_system(obs, kd, ks, mu, filt, lmax, chunk)
+        return _lighting_from_system(ata, atb, bb, count, kd, lmax, ridge, rcond)
     g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility, mu,
                         filt, lmax, chunk)
     return lighting_from_gram(g, kd, ks, lmax, ridge, rcond)
 
 
+def _literal_system(obs, kd, ks, mu, filt, lmax, chunk):
+    """Normal equations of eq. 25 as printed: diffuse rows $\\Lambda_l\\hat\\rho_l Y_{lm}(n)$ for every $l \\le l^*$.
+
+    Per channel $A_c = K_{d,c}D + K_{s,c}S$, with $D$ and $S$ both `(N, n_coeffs)`; the sums
+    $D^TWD$, $D^TWS$, $S^TWS$, $D^TWb$, $S^TWb$ are accumulated over pixel chunks (`lax.scan`).
+    Returns `ata (C, n, n)`, `atb (C, n)`, `bb (C,)`, `count ()`.
+    """
+    n, v, b, w = obs.normals, obs.views, obs.values, obs.weights
+    npx = n.shape[0]
+    pad = (-npx) % chunk
+    up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
+    dt = n.dtype
+    nc = (lmax + 1) ** 2
+    c = b.shape[1]
+    xs = (jnp.concatenate([n, up]).reshape(-1, chunk, 3), jnp.concatenate([v, up]).reshape(-1, chunk, 3),
+          jnp.pad(b, ((0, pad), (0, 0))).reshape(-1, chunk, c), jnp.pad(w, (0, pad)).reshape(-1, chunk),
+          None if obs.reflected_visibility is None else jnp.pad(obs.reflected_visibility, (0, pad)).reshape(-1, chunk))
+    lam = jaxsh.lambertian_spectrum(lmax, dt)[jaxsh.sh_degrees(lmax)]  # thesis eq. 3.32
+
+    def step(acc, x):
+        nn, vv, bb_, ww, rr = x
+        _, s = eq25_rows(nn, vv, None, rr, mu, filt, lmax)
+        vis = jnp.sum(nn * vv, -1) > 0
+        d = jnp.where(vis[:, None], jaxsh.real_sh(nn, lmax) * lam[None, :], 0.0)
+        wd, ws = d * ww[:, None], s * ww[:, None]
+        dd, ds, ss, db, sb, sq, cnt = acc
+        return (dd + wd.T @ d, ds + wd.T @ s, ss + ws.T @ s, db + wd.T @ bb_, sb + ws.T @ bb_,
+                sq + jnp.sum(ww[:, None] * bb_ * bb_, 0), cnt + jnp.sum((ww > 0).astype(dt))), None
+
+    z = jnp.zeros((nc, nc), dt)
+    init = (z, z, z, jnp.zeros((nc, c), dt), jnp.zeros((nc, c), dt), jnp.zeros((c,), dt), jnp.zeros((), dt))
+    (dd, ds, ss, db, sb, sq, cnt), _ = jax.lax.scan(step, init, xs)
+    ata = (kd**2)[:, None, None] * dd[None] + (kd * ks)[:, None, None] * (ds + ds.T)[None] + (ks**2)[:, None, None] * ss[None]
+    atb = (kd[None, :] * db + ks[None, :] * sb).T
+    return ata, atb, sq, cnt
+
+
 def lighting_from_gram(g: Gram, kd, ks, lmax, ridge, rcond) -> LightingResult:
     """The eq.-25 solve from accumulated Gram blocks (`inverse_lighting`; stage 1 of `factorize`)."""
     ata, atb = channel_system(g, kd, ks)
-    x, se, det, sv, rss, rank = eig_solve(ata, atb, g.bb, g.count, rcond, ridge)
+    return _lighting_from_system(ata, atb, g.bb, g.count, kd, lmax, ridge, rcond)
+
+
+def _lighting_from_system(ata, atb, bb, count, kd, lmax, ridge, rcond) -> LightingResult:
+    x, se, det, sv, rss, rank = eig_solve(ata, atb, bb, count, rcond, ridge)
     # supported l*: largest l with all coefficients of degree <= l determined.
     band_ok = jnp.stack([jnp.all(det[:, l * l : (l + 1) ** 2], -1) for l in range(lmax + 1)], -1)  # (C, L+1)
     prefix = jnp.cumprod(band_ok.astype(jnp.int32), -1)
     supported = jnp.sum(prefix, -1) - 1
     snr2 = jnp.where(det, (x / jnp.where(det, se, 1.0)) ** 2, 0.0)
     band_snr = jnp.stack([jnp.sqrt(jnp.mean(snr2[:, l * l : (l + 1) ** 2], -1)) for l in range(lmax + 1)], 0)
-    nobs = g.count * kd.shape[0]
-    data_ss = jnp.sum(g.bb)
+    nobs = count * kd.shape[0]
+    data_ss = jnp.sum(bb)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
     finite = jnp.all(jnp.isfinite(x)) & jnp.isfinite(rms)
     # trace(A^T W A) per channel: 0 for an all-zero BRDF (kd = ks = 0), whose images carry no lighting information
