@@ -135,6 +135,7 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
+@pytest.mark.slow  # ~80 s: reference renders of several views (make test-all)
 def test_textured_kd_ks_fit_predicts_the_object_under_a_new_light():
     """Fig. 15 analogue: a sphere with 4 texels of different K_d and K_s (RGB), six views each lit by the
     area source plus its own directional source, all rendered by the reference renderer (quadrature over
@@ -208,6 +209,7 @@ def test_textured_kd_ks_fit_predicts_the_object_under_a_new_light():
 # --------------------------------------------------------------------------- fit_brdf_sh on reference images (sec. 6.1, fig. 6)
 
 
+@pytest.mark.slow  # ~80 s: reference renders of several views (make test-all)
 def test_fit_brdf_sh_on_reference_images_fig6():
     """Fig. 6 (bottom) analogue on data with model error: a Cook-Torrance sphere (Beckmann, Smith G,
     Fresnel at the half angle; not representable at order 6) rendered by the reference renderer under the
