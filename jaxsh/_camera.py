@@ -68,7 +68,7 @@ def _require_finite(a, name: str) -> None:
     """Raise a ValueError if a concrete array holds NaN or inf (traced values are checked later)."""
     if is_traced(a):
         return
-    if not bool(jnp.all(jnp.isfinite(a))):
+    if not bool(np.all(np.isfinite(np.asarray(a)))):
         raise ValueError(f"`{name}` must be finite (no NaN or inf), got {np.asarray(a)}")
 
 
@@ -78,11 +78,14 @@ def _rotation_tol(dtype) -> float:
 
 
 def _pose_error(m):
-    """(max |RᵀR − I|, det R, max |last row − [0,0,0,1]|) of a 4×4 pose (JAX, traceable)."""
+    """(max |RᵀR − I|, det R, max |last row − [0,0,0,1]|) of a 4×4 pose (JAX, traceable; NumPy for a concrete pose)."""
+    xp = jnp if is_traced(m) else np
+    if xp is np:
+        m = np.asarray(m)
     rot = m[:3, :3]
-    orth = jnp.max(jnp.abs(rot.T @ rot - jnp.eye(3, dtype=m.dtype)))
-    row = jnp.max(jnp.abs(m[3] - jnp.asarray([0.0, 0.0, 0.0, 1.0], m.dtype)))
-    return orth, jnp.linalg.det(rot), row
+    orth = xp.max(xp.abs(rot.T @ rot - xp.eye(3, dtype=m.dtype)))
+    row = xp.max(xp.abs(m[3] - xp.asarray([0.0, 0.0, 0.0, 1.0], m.dtype)))
+    return orth, xp.linalg.det(rot), row
 
 
 def _matrix4(m, name: str = "cam_to_world"):

@@ -98,7 +98,7 @@ def check_values(x, bad, name: str, expected: str):
     """
     if is_traced(x):
         return eqx.error_if(x, jnp.any(bad(x)), f"`{name}` must be {expected}")
-    mask = np.asarray(bad(x))
+    mask = np.asarray(bad(np.asarray(x)))  # NumPy on concrete values: no eager XLA programs
     if np.any(mask):
         v = np.asarray(x, dtype=np.float64)
         shown = v[()] if v.ndim == 0 else v[np.broadcast_to(mask, v.shape)].ravel()[:4]
@@ -109,7 +109,7 @@ def check_values(x, bad, name: str, expected: str):
 
 def check_finite(x, name: str):
     """NaN and inf are errors (concrete: ValueError; traced: error_if)."""
-    return check_values(x, lambda a: ~jnp.isfinite(a), name, "finite (no NaN or inf)")
+    return check_values(x, lambda a: ~(abs(a) < jnp.inf), name, "finite (no NaN or inf)")  # NumPy or JAX
 
 
 def check_lmax(lmax, name: str = "lmax") -> int:
@@ -147,8 +147,9 @@ def check_nonzero_dirs(dirs, name: str = "dirs"):
     """
     dirs = check_dirs(dirs, name)
     if not is_traced(dirs):
-        n2 = jnp.sum(dirs * dirs, axis=-1)
-        if not bool(jnp.all(jnp.isfinite(n2) & (n2 > 0))):
+        d = np.asarray(dirs)
+        n2 = np.sum(d * d, axis=-1)
+        if not bool(np.all(np.isfinite(n2) & (n2 > 0))):
             raise ValueError(f"`{name}` contains a zero-length or non-finite direction (directions are normalized, so they must be finite and non-zero)")
     return dirs
 

@@ -235,7 +235,11 @@ class Lighting(eqx.Module):
 
     def total_sh(self, lmax: int) -> Float[Array, "n_coeffs C"]:
         """SH coefficients of all of the lighting to `lmax`: `slow_sh` (cut or zero-padded), the
-        fast sources as deltas (`directional_light_sh`) and the disks in closed form (`disk_light_sh`)."""
+        fast sources as deltas (`directional_light_sh`) and the disks in closed form (`disk_light_sh`).
+        One compiled program per (`lmax`, shapes): the parts' values are checked when the `Lighting` is built."""
+        return _total_sh(self, int(lmax))
+
+    def _total_sh(self, lmax: int):
         n = num_coeffs(lmax)
         parts = []
         if self.slow_sh is not None:
@@ -373,3 +377,9 @@ def model_args(fname: str, brdf, lighting, legacy: tuple, legacy_kw: dict, light
     if vals["kd"] is None or vals["ks"] is None or vals["sigma"] is None:
         raise ValueError("`kd`, `ks` and `sigma` must be arrays, got None")
     return TorranceSparrow(vals["kd"], vals["ks"], vals["mu"], vals["sigma"]), None, light
+
+
+@eqx.filter_jit
+def _total_sh(lighting: Lighting, lmax: int):
+    """`Lighting.total_sh` as one program (`lmax` static)."""
+    return lighting._total_sh(lmax)

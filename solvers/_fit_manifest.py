@@ -27,6 +27,7 @@ import os
 import sys
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -253,7 +254,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     if known is not None:  # eq. 24 at the fitted BRDF from the fit's own terms (same shapes: no new program)
         terms = practical_terms_for(obs, known if per_view is None else per_view)
         rows = (lambda a: a) if textured is None else (lambda a: a[obs.texel] if np.ndim(a) == 2 else a)  # noqa: E731
-        renders = obs.to_images(np.asarray(terms(rows(brdf.kd), rows(brdf.ks), brdf.mu, brdf.sigma)))
+        renders = obs.to_images(np.asarray(_eval_terms(terms, rows(brdf.kd), rows(brdf.ks), brdf.mu, brdf.sigma)))
     else:
         renders = [np.asarray(predict(brdf, lighting if per_view is None else per_view[k], g.normal, g.view,
                                       mask=g.mask, **extras[k])) for k, g in enumerate(gbs)]
@@ -305,6 +306,12 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
     jio.write_json(out("result.json"), result)
     say(f"wrote {out_dir}/result.json, lighting.exr/.png and {len(gbs)} re-renders")
     return result
+
+
+@eqx.filter_jit
+def _eval_terms(terms, kd, ks, mu, sigma):
+    """Eq. 24 from the fit's own terms as one program (not op by op)."""
+    return terms(kd, ks, mu, sigma)
 
 
 def _lighting_json(light_sh, lmax: int) -> dict:
