@@ -340,12 +340,12 @@ def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batc
     module docstring): finite values and gradients everywhere, poles included.
     Accuracy against `scipy.special.sph_harm_y`: ≤ 1e-12 absolute for
     $l_{max} \\le 100$ in float64. In float32, ≤ 1e-5 absolute for
-    $l_{max} \\le 30$ (measured 6.5e-6 at l = 12, 1.6e-6 at l = 30, 2.2e-6 at
-    l = 40, poles included): near the poles $Y_{l0}$ has slope $\\sim l^2/2$ in
-    z, so from `lmax` 13 on float32 input is normalized and run through the
-    recurrence in double-float arithmetic (error-free transformations; a
-    plain float32 recurrence reaches 1.3e-5 at l = 16 and 5e-5 at l = 30).
-    That path costs ~5-10× the plain float32 one; float64 is unaffected.
+    $l_{max} \\le 30$ (measured 1.1e-6 at l = 16, 2.1e-6 at l = 30, 2.8e-6 at
+    l = 40, poles included): near the poles $Y_{l0}$ has slope $\\sim l^2/2$
+    in z, so below float64 z is carried as $σ(1 - w)$, $w = 1 - |z|$ without
+    cancellation, and the recurrence runs in a difference form whose rounding
+    errors grow like l rather than l² there (`_z_features`, `_basis_bands`;
+    a plain float32 recurrence reaches 1.3e-5 at l = 16 and 5e-5 at l = 30).
 
     **Arguments:**
 
