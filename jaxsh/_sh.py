@@ -24,6 +24,8 @@ double factorial appears, so float32 stays accurate to high degree.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,7 +36,7 @@ from ._checks import check_dirs, check_lmax, check_nonzero_dirs
 from ._indexing import sh_degrees, sh_orders
 
 # Band limits up to this value use the unrolled, chunked evaluation
-# (`_basis_blocked` inside `_real_sh_chunked`); larger ones a `lax.scan` over l
+# (`_basis_bands` inside `_real_sh_chunked`); larger ones a `lax.scan` over l
 # (bounded compile time).
 _UNROLL_MAX = 20
 
@@ -43,8 +45,8 @@ _UNROLL_MAX = 20
 # points are laid out as (`_CHUNK // _BLOCK`, rows, `_BLOCK`) so that every
 # row operation is vectorized over `_BLOCK` points and the final transpose to
 # (points, coefficients) only strides over `_BLOCK * itemsize` bytes.
-_CHUNK = 2048
-_BLOCK = 32
+_CHUNK = 1024
+_BLOCK = 8
 
 
 def _diag_constants(lmax: int) -> np.ndarray:
@@ -124,7 +126,11 @@ def _basis_unrolled(x, y, z, lmax: int):
 
 
 def _basis_scan(x, y, z, lmax: int):
-    """Real SH with a `lax.scan` over l (vectorized over m); shape (n_coeffs, N)."""
+    """Real SH with a `lax.scan` over l (vectorized over m); shape (n_coeffs, N).
+
+    `z` is the z coordinate or the tuple of z features of `_z_features`.
+    """
+    zf = tuple(v[None, :] for v in z) if isinstance(z, tuple) else (z[None, :],)
     dtype = x.dtype
     a, b, d = (jnp.asarray(t, dtype=dtype) for t in _recurrence_tables(lmax))
     n = lmax + 1
@@ -136,218 +142,188 @@ def _basis_scan(x, y, z, lmax: int):
 
     _, (cos_m, sin_m) = jax.lax.scan(cs_step, (jnp.ones_like(x), jnp.zeros_like(x)), None, length=n)
 
+    rho, beta = (jnp.asarray(t, dtype=dtype) for t in _delta_tables(lmax))
+
     def q_step(carry, tables):
-        q1, q2 = carry  # q_{l-1}, q_{l-2}: (n, N)
-        al, bl, dl = tables
-        ql = al[:, None] * (z[None, :] * q1) - bl[:, None] * q2 + dl[:, None]
-        return (ql, q1), ql
+        q1, q2 = carry  # q_{l-1}, then q_{l-2} or Δ_{l-1} (difference form): (n, N)
+        al, bl, dl, rl, btl = (t[:, None] for t in tables)
+        if len(zf) == 1:
+            ql = al * (zf[0] * q1) - bl * q2 + dl
+            return (ql, q1), ql
+        # Difference form below float64 (see `_basis_bands`).
+        sig, sw = zf
+        delta = btl * (sig * q2) - al * (sw * q1)
+        ql = rl * (sig * q1) + delta + dl
+        return (ql, delta), ql
 
     zeros = jnp.zeros((n,) + x.shape, dtype)
-    _, q = jax.lax.scan(q_step, (zeros, zeros), (a, b, d))  # (l, m, N)
+    _, q = jax.lax.scan(q_step, (zeros, zeros), (a, b, d, rho, beta))  # (l, m, N)
     ls = sh_degrees(lmax)
     ms = sh_orders(lmax)
     trig = jnp.concatenate([sin_m[1:][::-1], cos_m], axis=0)  # rows m = -lmax..lmax
     return q[ls, np.abs(ms)] * trig[ms + lmax]
 
 
-def _basis_blocked(unit, lmax: int, block: int = _BLOCK):
-    """Real SH of unit vectors (C, 3) -> (C, n_coeffs), vectorized per l.
+@functools.lru_cache(maxsize=None)
+def _band_tables(lmax: int):
+    """Per degree l, the (2l+1)-vectors A_l, B_l, D_l (m = -l..l) of the flat recurrence.
 
-    The same recurrence as `_basis_unrolled`, but with arrays shaped
-    (C // block, rows, block): one (l+1)-row slab of $\\bar q_l^m$ per degree
-    (materialized with `optimization_barrier`, so XLA does not re-evaluate the
-    recurrence chain for every output element), one slab of the
-    $\\mathrm{Re}/\\mathrm{Im}\\,(x+iy)^m$ for m = -lmax..lmax, and one product
-    per degree, assembled in flat order and transposed back once.
+    $Y_{l,m} = A_{lm}\\,z\\,Y_{l-1,m} - B_{lm}\\,Y_{l-2,m} + D_{lm}\\,T_m$ with
+    $T_m = \\mathrm{Re}/\\mathrm{Im}\\,(x+iy)^{|m|}$: the recurrence of the module
+    docstring run directly on the outputs (the trigonometric factor does not depend
+    on l). A and B are zero where $Y_{l-1,m}$ / $Y_{l-2,m}$ do not exist, D is
+    non-zero at |m| = l only. The last two vectors are rho and beta of
+    `_delta_tables` for the difference form used below float64.
     """
+    a, b, d = _recurrence_tables(lmax)
+    rho, beta = _delta_tables(lmax)
+    out = []
+    for l in range(lmax + 1):
+        am = np.abs(np.arange(-l, l + 1))
+        ai = np.minimum(am, lmax)
+        al = np.where(am <= l - 1, a[l, ai], 0.0)
+        bl = np.where(am <= l - 2, b[l, ai], 0.0)
+        dl = np.where(am == l, d[l, l], 0.0)
+        out.append((al, bl, dl, np.where(am <= l - 1, rho[l, ai], 0.0), np.where(am <= l - 2, beta[l, ai], 0.0)))
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=None)
+def _delta_tables(lmax: int):
+    """rho[l, m] = q_l^m(1) / q_{l-1}^m(1) (l > m) and beta[l, m] = B[l, m] / rho[l-1, m] (l > m+1).
+
+    From $\\bar q_l = A\\,\\bar q_{l-1} - B\\,\\bar q_{l-2}$ at z = 1:
+    $\\rho_l = A - B/\\rho_{l-1}$, $\\rho_{m+1} = A$ (float64, NumPy; no overflow).
+    """
+    a, b, _ = _recurrence_tables(lmax)
     n = lmax + 1
-    dtype = unit.dtype
-    c_pts = unit.shape[0]
+    rho = np.zeros((n, n))
+    beta = np.zeros((n, n))
+    for m in range(n):
+        for l in range(m + 1, n):
+            if l == m + 1:
+                rho[l, m] = a[l, m]
+            else:
+                beta[l, m] = b[l, m] / rho[l - 1, m]
+                rho[l, m] = a[l, m] - beta[l, m]
+    return rho, beta
+
+
+def _z_features(unit):
+    """Per-point inputs of the recurrence: (x, y, z) or, below float64, (x, y, σ, σw).
+
+    Near the poles $Y_{l0}$ has slope $\\sim l^2/2$ in z, so the one-ulp rounding
+    of a float32 z alone costs ~3e-5 at l = 30. Below float64 z is therefore
+    carried as $z = σ(1 - w)$ with $σ = \\pm1$ and
+    $w = 1 - |z| = (x^2+y^2)/(r^2 (1 + |z|/r))$, which is accurate to a few ulp
+    *relative* (no cancellation), and the products $z\\,v$ of the recurrence are
+    formed as $σ v - σw\\,v$: the recurrence then sees z to far better than one
+    ulp near the poles, at the cost of one multiply-add. σ is piecewise constant
+    (no gradient), so values and gradients are those of the smooth formula.
+    """
+    if unit.dtype == jnp.float64:
+        return unit
+    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
+    s2 = x * x + y * y
+    r2 = s2 + z * z
+    rinv = jax.lax.rsqrt(r2)
+    zn = z * rinv
+    sig = jnp.where(z < 0, -1.0, 1.0).astype(unit.dtype)
+    w = s2 / (r2 * (1.0 + sig * zn))
+    return jnp.stack([x * rinv, y * rinv, sig, sig * w], axis=-1)
+
+
+def _zmul(zf, v):
+    """z * v from the z features (z) or (σ, σw) of `_z_features`."""
+    if len(zf) == 1:
+        return zf[0] * v
+    return zf[0] * v - zf[1] * v
+
+
+def _basis_bands(feat, lmax: int, block: int = _BLOCK):
+    """Real SH of the features (C, k) of `_z_features` -> (C, n_coeffs).
+
+    Arrays are laid out (C // block, rows, block) so that every operation is
+    vectorized over `block` points; degree l is one (2l+1)-row band computed
+    from the two previous bands by the flat recurrence (`_band_tables`), the
+    bands are concatenated in flat order and transposed back once.
+    """
+    dtype = feat.dtype
+    c_pts, k = feat.shape
     if c_pts % block:
         block = c_pts
     g = c_pts // block
-    a, b, d = _recurrence_tables(lmax)
-    ut = unit.reshape(g, block, 3).transpose(0, 2, 1)  # (g, 3, block)
-    x, y, z = ut[:, 0:1], ut[:, 1:2], ut[:, 2:3]  # (g, 1, block)
+    ft = feat.reshape(g, block, k).transpose(0, 2, 1)  # (g, k, block)
+    x, y = ft[:, 0:1], ft[:, 1:2]
+    zf = tuple(ft[:, i : i + 1] for i in range(2, k))
 
     def col(v):
         return jnp.asarray(np.asarray(v), dtype)[None, :, None]
 
     c = [jnp.ones_like(x)]
     s = [jnp.zeros_like(x)]
-    for m in range(1, n):
-        c.append(x * c[m - 1] - y * s[m - 1])
-        s.append(x * s[m - 1] + y * c[m - 1])
+    for m in range(1, lmax + 1):
+        cn = x * c[m - 1] - y * s[m - 1]
+        sn = x * s[m - 1] + y * c[m - 1]
+        c.append(cn)
+        s.append(sn)
     trig = jnp.concatenate(s[1:][::-1] + c, axis=1)  # rows m = -lmax..lmax
-    trig = jax.lax.optimization_barrier(trig)
-    qs = []
-    q1 = q2 = None
-    for l in range(n):
-        parts = []
-        if l >= 2:
-            parts.append(col(a[l, : l - 1]) * (z * q1[:, : l - 1]) - col(b[l, : l - 1]) * q2[:, : l - 1])
-        if l >= 1:
-            parts.append(float(a[l, l - 1]) * (z * q1[:, l - 1 : l]))
-        parts.append(jnp.full((g, 1, block), float(d[l, l]), dtype))
-        ql = jnp.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
-        ql = jax.lax.optimization_barrier(ql)  # rows m = 0..l
-        qs.append(ql)
-        q2, q1 = q1, ql
-    rows = []
-    for l in range(n):
-        ql = qs[l]
-        if l > 0:
-            rows.append(ql[:, 1 : l + 1][:, ::-1] * trig[:, lmax - l : lmax])
-        rows.append(ql[:, : l + 1] * trig[:, lmax : lmax + l + 1])
-    out = jnp.concatenate(rows, axis=1)  # (g, n_coeffs, block)
-    return out.transpose(0, 2, 1).reshape(c_pts, n * n)
+    bands = []
+    delta = None
+
+    def pad(v, k):
+        return jnp.pad(v, ((0, 0), (k, k), (0, 0)))
+
+    for l, (al, bl, dl, rl, btl) in enumerate(_band_tables(lmax)):
+        t = col(dl) * trig[:, lmax - l : lmax + l + 1]
+        if l >= 1 and len(zf) == 1:
+            t = t + col(al) * (zf[0] * pad(bands[l - 1], 1))
+            if l >= 2:
+                t = t - col(bl) * pad(bands[l - 2], 2)
+        elif l >= 1:
+            # Difference form (below float64, z = σ(1 - w)): Y_l = σ rho Y_{l-1} + Δ_l,
+            # Δ_l = σ beta Δ_{l-1} - A σw Y_{l-1}; rounding errors then add up ~l eps
+            # near the poles instead of ~l² eps (the three-term recurrence has a double
+            # characteristic root at z = ±1).
+            sig, sw = zf
+            yp = pad(bands[l - 1], 1)
+            dnew = -col(al) * (sw * yp)
+            if delta is not None:
+                dnew = dnew + col(btl) * (sig * pad(delta, 1))
+            delta = dnew
+            t = t + col(rl) * (sig * yp) + delta
+        bands.append(t)
+    out = jnp.concatenate(bands, axis=1)  # (g, n_coeffs, block)
+    return out.transpose(0, 2, 1).reshape(c_pts, (lmax + 1) ** 2)
 
 
-def _real_sh_chunked(unit, lmax: int, chunk: int = _CHUNK):
-    """`_basis_blocked` over chunks of `chunk` points (a `fori_loop`)."""
-    n_pts = unit.shape[0]
+def _real_sh_chunked(feat, lmax: int, chunk: int = _CHUNK):
+    """`_basis_bands` over chunks of `chunk` points (a `fori_loop`)."""
+    n_pts = feat.shape[0]
     if n_pts == 0:
-        return jnp.zeros((0, (lmax + 1) ** 2), unit.dtype)
+        return jnp.zeros((0, (lmax + 1) ** 2), feat.dtype)
     if n_pts <= chunk:
-        return _basis_blocked(unit, lmax)
+        return _basis_bands(feat, lmax)
     n_chunks = -(-n_pts // chunk)
 
     def body(i, out):
         # The last chunk is shifted back to end at n_pts (it overlaps the
         # previous one; the overlap is recomputed identically).
         start = jnp.minimum(i * chunk, n_pts - chunk)
-        u = jax.lax.dynamic_slice_in_dim(unit, start, chunk, 0)
-        return jax.lax.dynamic_update_slice_in_dim(out, _basis_blocked(u, lmax), start, 0)
+        u = jax.lax.dynamic_slice_in_dim(feat, start, chunk, 0)
+        return jax.lax.dynamic_update_slice_in_dim(out, _basis_bands(u, lmax), start, 0)
 
-    out = jnp.zeros((n_pts, (lmax + 1) ** 2), unit.dtype)
+    out = jnp.zeros((n_pts, (lmax + 1) ** 2), feat.dtype)
     return jax.lax.fori_loop(0, n_chunks, body, out)
-
-
-# float32 above this band limit uses the compensated recurrence (error-free
-# transformations), which keeps |error| <= 1e-5 to l = 30 and beyond; the plain
-# float32 recurrence reaches ~1.3e-5 near the poles at l = 16 and 5e-5 at l = 30.
-_F32_COMPENSATED_FROM = 13
-
-
-def _split(a):
-    """Dekker's split of a float32 into two 12-bit halves (a = hi + lo exactly)."""
-    c = 4097.0 * a
-    hi = c - (c - a)
-    return hi, a - hi
-
-
-def _two_prod(a, b):
-    """p + e = a*b exactly (Dekker; no FMA needed)."""
-    p = a * b
-    ah, al = _split(a)
-    bh, bl = _split(b)
-    e = ((ah * bh - p) + ah * bl + al * bh) + al * bl
-    return p, e
-
-
-def _two_sum(a, b):
-    """s + e = a + b exactly (Knuth)."""
-    s = a + b
-    bb = s - a
-    e = (a - (s - bb)) + (b - bb)
-    return s, e
-
-
-def _df_mul_const(c_hi, c_lo, x_hi, x_lo):
-    """(c_hi + c_lo) * (x_hi + x_lo) in double-float, renormalized."""
-    p, e = _two_prod(c_hi, x_hi)
-    e = e + (c_hi * x_lo + c_lo * x_hi)
-    return _two_sum(p, e)
-
-
-def _df_unit(dirs):
-    r"""Normalize float32 directions with the z component as a double-float (zh + zl).
-
-    Near the poles $Y_{l0}$ has slope $\sim l^2/2$ in z, so a one-ulp rounding of
-    the normalized z alone costs ~3e-5 at l = 30 in float32: the norm, its
-    reciprocal square root and z/|d| are therefore computed with error-free
-    transformations. x and y enter only through $(x+iy)^m$ and stay float32.
-    """
-    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
-    px, ex = _two_prod(x, x)
-    py, ey = _two_prod(y, y)
-    pz, ez = _two_prod(z, z)
-    s, e = _two_sum(px, py)
-    s, e2 = _two_sum(s, pz)
-    e = e + e2 + ex + ey + ez
-    s, e = _two_sum(s, e)
-    bad = jnp.any(~(jnp.isfinite(s) & (s > 0)))
-    s = eqx.error_if(s, bad, "`dirs` contains a zero-length or non-finite direction")
-    r0 = jax.lax.rsqrt(s)
-    p1, e1 = _two_prod(s, r0)
-    p2, e2 = _two_prod(p1, r0)
-    resid = ((1.0 - p2) - e2) - (e1 * r0 + e * r0 * r0)
-    rh, rl = _two_sum(r0, 0.5 * r0 * resid)
-    zh, zl = _two_prod(z, rh)
-    zl = zl + z * rl
-    zh, zl = _two_sum(zh, zl)
-    return x * rh, y * rh, zh, zl
-
-
-def _basis_compensated(x, y, z, lmax: int, z_lo=None):
-    """Real SH (n_coeffs, N) with the three-term recurrence in double-float32 arithmetic.
-
-    Same recurrence and tables as `_basis_scan`, but every q_l is carried as an
-    unevaluated sum hi + lo of two float32 numbers and every product/sum uses
-    error-free transformations (Dekker 1971, Knuth), with the constants split
-    into hi + lo parts too: the recurrence then loses no accuracy near the poles,
-    where plain float32 rounding grows like l·eps. About 4x the float32 cost.
-    """
-    dtype = x.dtype
-    tabs = _recurrence_tables(lmax)
-    hi_lo = []
-    for t in tabs:
-        hi = t.astype(np.float32)
-        lo = (t - hi.astype(np.float64)).astype(np.float32)
-        hi_lo.append((jnp.asarray(hi, dtype), jnp.asarray(lo, dtype)))
-    (a_hi, a_lo), (b_hi, b_lo), (d_hi, d_lo) = hi_lo
-    n = lmax + 1
-
-    def cs_step(carry, _):
-        cm, sm = carry
-        return (x * cm - y * sm, x * sm + y * cm), carry
-
-    _, (cos_m, sin_m) = jax.lax.scan(cs_step, (jnp.ones_like(x), jnp.zeros_like(x)), None, length=n)
-    zz = z[None, :]
-    zl = jnp.zeros_like(z) if z_lo is None else z_lo
-
-    def q_step(carry, tables):
-        q1h, q1l, q2h, q2l = carry
-        ah, al, bh, bl, dh, dl = (t[:, None] for t in tables)
-        # q_l = A z q_{l-1} - B q_{l-2} + D  (B already holds a_lm * b_lm; see _recurrence_tables)
-        p, e = _two_prod(jnp.broadcast_to(zz, q1h.shape), q1h)
-        e = e + zz * q1l + zl[None, :] * q1h
-        p, e = _two_sum(p, e)
-        th, tl = _df_mul_const(ah, al, p, e)
-        uh, ul = _df_mul_const(bh, bl, q2h, q2l)
-        qh, ql = _two_sum(th, -uh)
-        ql = ql + (tl - ul)
-        qh, e3 = _two_sum(qh, dh)
-        qh, ql = _two_sum(qh, ql + e3 + dl)
-        return (qh, ql, q1h, q1l), qh + ql
-
-    zeros = jnp.zeros((n,) + x.shape, dtype)
-    _, q = jax.lax.scan(q_step, (zeros, zeros, zeros, zeros), (a_hi, a_lo, b_hi, b_lo, d_hi, d_lo))
-    ls = sh_degrees(lmax)
-    ms = sh_orders(lmax)
-    trig = jnp.concatenate([sin_m[1:][::-1], cos_m], axis=0)
-    return q[ls, np.abs(ms)] * trig[ms + lmax]
 
 
 def _real_sh_flat(unit, lmax: int):
     """Real SH of unit vectors (N, 3) -> (N, n_coeffs)."""
-    if unit.dtype == jnp.float32 and lmax >= _F32_COMPENSATED_FROM:
-        x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
-        return _basis_compensated(x, y, z, lmax).T
+    feat = _z_features(unit)
     if lmax <= _UNROLL_MAX:
-        return _real_sh_chunked(unit, lmax)
-    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
-    return _basis_scan(x, y, z, lmax).T
+        return _real_sh_chunked(feat, lmax)
+    x, y = feat[:, 0], feat[:, 1]
+    return _basis_scan(x, y, tuple(feat[:, i] for i in range(2, feat.shape[1])), lmax).T
 
 
 def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batch n_coeffs"]:
@@ -364,12 +340,12 @@ def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batc
     module docstring): finite values and gradients everywhere, poles included.
     Accuracy against `scipy.special.sph_harm_y`: ≤ 1e-12 absolute for
     $l_{max} \\le 100$ in float64. In float32, ≤ 1e-5 absolute for
-    $l_{max} \\le 30$ (measured 6.5e-6 at l = 12, 1.6e-6 at l = 30, 2.2e-6 at
-    l = 40, poles included): near the poles $Y_{l0}$ has slope $\\sim l^2/2$ in
-    z, so from `lmax` 13 on float32 input is normalized and run through the
-    recurrence in double-float arithmetic (error-free transformations; a
-    plain float32 recurrence reaches 1.3e-5 at l = 16 and 5e-5 at l = 30).
-    That path costs ~5-10× the plain float32 one; float64 is unaffected.
+    $l_{max} \\le 30$ (measured 1.1e-6 at l = 16, 2.1e-6 at l = 30, 2.8e-6 at
+    l = 40, poles included): near the poles $Y_{l0}$ has slope $\\sim l^2/2$
+    in z, so below float64 z is carried as $σ(1 - w)$, $w = 1 - |z|$ without
+    cancellation, and the recurrence runs in a difference form whose rounding
+    errors grow like l rather than l² there (`_z_features`, `_basis_bands`;
+    a plain float32 recurrence reaches 1.3e-5 at l = 16 and 5e-5 at l = 30).
 
     **Arguments:**
 
@@ -394,11 +370,7 @@ def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batc
 def _real_sh_jit(dirs, lmax):
     batch = dirs.shape[:-1]
     flat = dirs.reshape(-1, 3)
-    if flat.dtype == jnp.float32 and lmax >= _F32_COMPENSATED_FROM:
-        x, y, zh, zl = _df_unit(flat)
-        out = _basis_compensated(x, y, zh, lmax, zl).T
-    else:
-        out = _real_sh_flat(_unit_vectors(flat), lmax)
+    out = _real_sh_flat(_unit_vectors(flat), lmax)
     return out.reshape(batch + ((lmax + 1) ** 2,))
 
 

@@ -126,20 +126,25 @@ def test_float32_accuracy(rng, lmax):
     assert gotc.dtype == jnp.complex64
 
 
-def test_float32_compensated_path_is_needed(rng):
-    """The plain float32 recurrence would miss 1e-5 near the poles at l = 30 (why the compensated path exists)."""
+def test_float32_difference_form_is_needed(rng):
+    """The plain float32 three-term recurrence in z misses 1e-5 near the poles at l = 30; the
+    difference form in w = 1 - |z| that `real_sh` runs below float64 stays within 5e-6."""
     from jaxsh import _sh
 
     t = np.linspace(0, 0.05, 200)
     pole = np.stack([np.sin(t), 0 * t, np.cos(t)], -1).astype(np.float32)
-    plain = np.asarray(_sh._real_sh_flat(_sh._unit_vectors(jnp.asarray(pole)), 12), np.float64)
-    np.testing.assert_allclose(plain, scipy_real_sh(pole.astype(np.float64), 12), atol=1e-5)
-    x, y, zh, zl = _sh._df_unit(jnp.asarray(pole))
-    plain30 = np.asarray(_sh._basis_scan(x, y, zh, 30).T, np.float64)
-    comp30 = np.asarray(_sh._basis_compensated(x, y, zh, 30, zl).T, np.float64)
+    pole = np.concatenate([pole, -pole])
     ref = scipy_real_sh(pole.astype(np.float64), 30)
+    u = _sh._unit_vectors(jnp.asarray(pole))
+    plain30 = np.asarray(_sh._basis_scan(u[:, 0], u[:, 1], u[:, 2], 30).T, np.float64)
+    feat = _sh._z_features(u)
+    diff30 = np.asarray(_sh._basis_scan(feat[:, 0], feat[:, 1], (feat[:, 2], feat[:, 3]), 30).T, np.float64)
     assert np.abs(plain30 - ref).max() > 1e-5
-    assert np.abs(comp30 - ref).max() < 5e-6
+    assert np.abs(diff30 - ref).max() < 5e-6
+    assert np.abs(np.asarray(jaxsh.real_sh(pole, 30), np.float64) - ref).max() < 5e-6
+    # the unrolled band path (lmax <= 20) too
+    ref20 = scipy_real_sh(pole.astype(np.float64), 20)
+    assert np.abs(np.asarray(jaxsh.real_sh(pole, 20), np.float64) - ref20).max() < 5e-6
 
 
 def test_unnormalized_directions_are_normalized(rng):
