@@ -106,6 +106,37 @@ def test_result_contract(rng):
         solvers.fit_sharing(x, y, 40, tol=1e-9, n_add=10, throw=True)
 
 
+def test_status_judges_the_requested_tol(rng):
+    """The status reflects the final residual against `tol`, both sides; greedy, smoothing spline and image fits."""
+    x, y = _data(rng, 300, 3)
+    # smoothing spline with every sample a centre: its residual (independent: scipy) decides the status
+    ref = RBFInterpolator(x, y, kernel="linear", degree=1, smoothing=0.5)(x)
+    rel = np.sqrt(((y - ref) ** 2).sum() / (y**2).sum())
+    assert rel > 1e-3
+    above = solvers.fit_sharing(x, y, 300, smoothing=0.5, tol=0.5 * rel)
+    below = solvers.fit_sharing(x, y, 300, smoothing=0.5, tol=2.0 * rel)
+    np.testing.assert_allclose(float(above.rel_rms), rel, rtol=1e-6)
+    assert solvers.status_name(above.status) == "tolerance_not_reached"
+    assert solvers.status_name(below.status) == "converged"
+    # image fit (eq. 12): 30 centres on Oren-Nayar data; the residual recomputed from the model and the samples
+    normal, mask, _ = Z.sphere_geometry(24)
+    lights = Z.theta_d_lights(np.array([0.2, 0.5, 0.8, 1.1, 1.3]))
+    smp = S.reflectance_samples(Z.render_images(Z.oren_nayar_brdf, normal, mask, lights), normal, Z.VIEW, lights,
+                                mask=mask, min_cos=0.1)
+    free = S.fit_homogeneous(smp, 30, n_add=5)
+    f, c = np.asarray(smp.values), np.asarray(smp.cos_i)[:, None]
+    r = (f - np.asarray(free.fit(smp.points))) * c
+    rel_img = np.sqrt((r**2).sum() / ((f * c) ** 2).sum())
+    np.testing.assert_allclose(float(free.rel_rms), rel_img, rtol=1e-6)
+    assert solvers.status_name(free.status) == "converged"  # no tol asked: no quality claim (documented)
+    tight = S.fit_homogeneous(smp, 30, n_add=5, tol=0.5 * rel_img)
+    assert solvers.status_name(tight.status) == "tolerance_not_reached" and float(tight.rel_rms) > 0.5 * rel_img
+    with pytest.raises(solvers.SolveError, match="tolerance_not_reached"):
+        S.fit_homogeneous(smp, 30, n_add=5, tol=0.5 * rel_img, throw=True)
+    loose = S.fit_homogeneous(smp, 30, n_add=5, tol=1.5 * rel_img)
+    assert solvers.status_name(loose.status) == "converged" and float(loose.rel_rms) <= 1.5 * rel_img
+
+
 def _render_case(n_px=12):
     normal, mask, xy = Z.sphere_geometry(n_px)
     mask = mask & (np.asarray(xy)[..., 0] < 0.7)  # part of the frame only
