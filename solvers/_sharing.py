@@ -123,7 +123,8 @@ class _GreedyState(eqx.Module):
 
 
 @eqx.filter_jit
-def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, tol, n_centers: int, n_add: int, n_rounds: int, chunk: int):
+def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, tol, spread, n_centers: int, n_add: int,
+            n_rounds: int, chunk: int):
     n, d = points.shape
     dt = points.dtype
     bounds = (jnp.min(points, axis=0), jnp.max(points, axis=0))  # the polynomial box: all samples, every round
@@ -151,13 +152,29 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
         s, _ = carry
         return (s.rel > tol) & (s.count < n_centers) & jnp.isfinite(s.rel) & (s.round + 1 < n_rounds)
 
+    ps = points * scale[None, :]  # the metric M of eq. 11
+
+    def pick(j, carry):
+        # the worst sample, preferring one outside the balls claimed by this round's earlier picks (see fit_sharing:
+        # "spread"); never a centre already
+        sup, base, idx, is_center, count0 = carry
+        cand = jnp.argmax(sup)
+        cand = jnp.where(sup[cand] > -jnp.inf, cand, jnp.argmax(base))
+        pos = count0 + j
+        active = jnp.arange(idx.shape[0]) < pos
+        dc = jnp.sqrt(jnp.sum((ps[idx] - ps[cand][None, :]) ** 2, axis=1))
+        near = jnp.min(jnp.where(active, dc, jnp.inf))
+        r = jnp.sqrt(jnp.sum((ps - ps[cand][None, :]) ** 2, axis=1))
+        sup = jnp.where(r < spread * near, -jnp.inf, sup).at[cand].set(-jnp.inf)
+        base = base.at[cand].set(-jnp.inf)
+        return sup, base, idx.at[pos].set(cand.astype(idx.dtype)), is_center.at[cand].set(True), count0
+
     def body(carry):
         s, e2 = carry
         score = jnp.where(s.is_center, -jnp.inf, e2)
-        _, new = jax.lax.top_k(score, n_add)
-        idx = jax.lax.dynamic_update_slice(s.idx, new.astype(s.idx.dtype), (s.count,))
-        count = jnp.minimum(s.count + n_add, n_centers)
-        is_center = s.is_center.at[new].set(True)
+        n_new = jnp.minimum(n_add, n_centers - s.count)
+        _, _, idx, is_center, _ = jax.lax.fori_loop(0, n_new, pick, (score, score, s.idx, s.is_center, s.count))
+        count = s.count + n_new
         lam, poly, e2, rel = fit_eval(idx, count)
         r = s.round + 1
         s = _GreedyState(
@@ -185,8 +202,10 @@ class SharingFit(Solution):
     - `history_centers`, `history_rms`: `(R,)` centre count and relative
       weighted RMS residual $\\sqrt{\\sum\\varepsilon_i^2/\\sum(w_i f_i)^2}$ over all
       samples after each greedy round (one entry for interpolation).
-    - `status`: `Status.converged`; `Status.tolerance_not_reached` (the
-      centre budget ran out before `tol`); `Status.singular` (the solve of
+    - `status`: `Status.converged` (the solve succeeded and, when a `tol`
+      was given, `rel_rms <= tol`); `Status.tolerance_not_reached`
+      (`rel_rms > tol`: the centre budget ran out before `tol`, or a
+      smoothing spline's residual is above it); `Status.singular` (the solve of
       eq. 10 gave a non-finite solution); `Status.nonfinite` (finite
       solution, non-finite residual); `Status.no_signal` (all-zero values
       or weights); `Status.ill_conditioned` (degenerate data, see
@@ -243,6 +262,7 @@ def fit_sharing(
     tol: float | None = None,
     n_init: int | None = None,
     n_add: int | None = None,
+    spread: float = 1.0,
     chunk: int | None = None,
     throw: bool = False,
 ) -> SharingFit:
@@ -275,7 +295,7 @@ def fit_sharing(
     extremes of each coordinate, so the polynomial is determined), fit,
     evaluate the weighted residuals $\\varepsilon_i = (f_i - \\tilde f(\\vec q_i))\\,w_i$
     (the paper's $w_i = \\cos\\theta_i$) at all samples, append the `n_add`
-    worst samples (Euclidean norm over channels) and repeat, until the
+    worst samples (Euclidean norm over channels; *spread*, see below) and repeat, until the
     relative RMS residual is below `tol` or `n_centers` are used. The system
     is padded to `n_centers` (unused rows decoupled with unit diagonal), so
     the whole loop is one `jax.lax.while_loop` compiled once. Each round
@@ -300,11 +320,44 @@ def fit_sharing(
     - `smoothing`: $\\rho \\ge 0$ (traced).
     - `key`: PRNG key for the initial random subset (default `PRNGKey(0)`).
     - `weights`: `(N,)` residual weights for the greedy selection (default 1).
-    - `tol`: target relative RMS residual for the greedy loop (default: run
-      to `n_centers`).
+    - `tol`: the requested relative weighted RMS residual `rel_rms`. It
+      stops the greedy loop as soon as it is reached, and it is what the
+      status judges: a fit whose final `rel_rms` is above `tol` (the centre
+      budget ran out first, or a smoothing spline, `smoothing > 0`, that
+      does not fit that closely) has status `tolerance_not_reached`, not
+      `converged`. Default `None`: run to `n_centers`, and the status then
+      only says the solve succeeded — it makes **no claim about the fit's
+      quality** (e.g. 300 centres at 19 % error is `converged`); pass `tol`
+      to have the quality checked.
     - `n_init`, `n_add`: initial subset size and centres added per round
       (static; defaults `max(n_centers // 10, d + 2)` and
       `max(n_centers // 10, 1)`).
+    - `spread`: $s \\ge 0$, how far apart one round's new centres are
+      kept (default 1). The picks of a round are made one at a time, worst
+      residual first; a pick at $\\vec q_j$ whose nearest centre (earlier
+      ones and this round's) is at distance $\\delta_j$ in the metric $M$
+      *claims* the ball $\\|M(\\vec q - \\vec q_j)\\| < s\\,\\delta_j$: the
+      samples inside are skipped for the rest of the round (they fall back
+      to plain worst-first only when every sample is claimed). `spread=0`
+      is the plain top-`n_add` rule.
+
+      Why: the `n_add` worst residuals of a round are neighbours — one
+      image's specular peak or grazing rim — so plain top-`n_add` puts
+      tens of nearly coincident centres in one spot per round. With the
+      linear kernel each centre is a cone $\\|M(\\vec q - \\vec q_i)\\|$;
+      clusters of cones at the few sampled $w$ (one per image) and sparse
+      centres elsewhere make the interpolant at a held-out $w$ vary with
+      the azimuth $2\\phi_d$ of $(u, v)$ (eq. 7), which is the azimuth about
+      the highlight in the image: *radial streaks* in the prediction error
+      of a held-out light. Measured (tests/test_sharing.py
+      `test_greedy_spread_removes_radial_streaks`; sphere, 8 lights in a
+      0.9 rad cone, 300 centres, $m_w = 0.5$, 6 held-out lights): the
+      held-out error on Oren–Nayar falls from 9.5 % to 2.7 % and the
+      along-ring part of it (the streaks) from 8.3 % to 2.4 %; on the
+      two-lobe Cook–Torrance metal from 3.6 % to 1.2 % (streaks 2.7 % to
+      0.8 %). $s = 2$ is within 10 % of $s = 1$; a random subset of the same
+      size gives 3.3 %. The cost is $O(n_{add}(N + K)d)$ a round, small next
+      to the residual evaluation.
     - `chunk`: static evaluation chunk (see `jaxsh.RBFModel`).
     - `throw`: raise `SolveError` unless the status is `Status.converged`
       (default `False`: check `fit.status`).
@@ -360,6 +413,7 @@ def fit_sharing(
     chunk = jaxsh.rbf_auto_chunk(n_centers) if chunk is None else _check_int(chunk, "chunk")
     n_add = None if n_add is None else _check_int(n_add, "n_add")
     n_init = None if n_init is None else _check_int(n_init, "n_init", lo=d + 1)
+    spread = check_float(spread, "spread")
     w = jnp.ones((n,), points.dtype) if weights is None else weights
     wv = values * w[:, None]
     data_ss = jnp.sum(wv * wv)
@@ -372,7 +426,7 @@ def fit_sharing(
     _, first, inverse, counts = np.unique(cp, axis=0, return_index=True, return_inverse=True, return_counts=True)
     if np.any(counts > 1):
         fit = _merged_fit(points, values, w, weights is not None, first, inverse.reshape(-1), n_centers, scale, smoothing,
-                          key, tol, n_init, n_add, chunk, single, data_ss, count)
+                          key, tol, n_init, n_add, spread, chunk, single, data_ss, count)
         return finish(fit, throw)
     if _affine_rank(cp) < d:
         return finish(_affine_fallback(points, values, w, scale, single, chunk, data_ss, count), throw)
@@ -389,7 +443,8 @@ def fit_sharing(
         rounds = 0
         hist_c = jnp.asarray([n])
         hist_rel = rms_pair(rss, data_ss, count)[1][None]
-        reached = True
+        # a smoothing spline (rho > 0) does not interpolate: its residual is judged against `tol` like a greedy fit's
+        reached = tol is None or not float(hist_rel[0]) > tol
     else:
         n_add = max(n_centers // 10, 1) if n_add is None else n_add
         n_init = max(n_centers // 10, d + 2) if n_init is None else n_init
@@ -404,7 +459,7 @@ def fit_sharing(
         is_c = np.zeros(n, dtype=bool)
         is_c[idx0] = True
         st = _greedy(points, values, w, scale, smoothing, jnp.asarray(pad), jnp.asarray(min(count0, n_centers)),
-                     jnp.asarray(is_c), t,
+                     jnp.asarray(is_c), t, jnp.asarray(spread, points.dtype),
                      n_centers, n_add, n_rounds, chunk)
         k = int(st.count)
         lam, poly = st.lam[:k], st.poly
@@ -466,7 +521,7 @@ def _affine_fallback(points, values, w, scale, single, chunk, data_ss, count) ->
                         _finite(model.poly), True, degenerate=True)
 
 
-def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, smoothing, key, tol, n_init, n_add, chunk,
+def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, smoothing, key, tol, n_init, n_add, spread, chunk,
                 single, data_ss, count) -> SharingFit:
     """Duplicate points merged (weighted mean value, summed weight), fitted, measured on the samples as given."""
     groups = first.shape[0]
@@ -480,7 +535,8 @@ def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, s
     d1 = points.shape[1] + 1
     sub = fit_sharing(points[jnp.asarray(first)], merged[:, 0] if single else merged, max(min(n_centers, groups), d1),
                       scale, smoothing, key, weights=(wsum if weighted else cnt).astype(v.dtype), tol=tol,
-                      n_init=None if n_init is None else max(min(n_init, groups), d1), n_add=n_add, chunk=chunk)
+                      n_init=None if n_init is None else max(min(n_init, groups), d1), n_add=n_add, spread=spread,
+                      chunk=chunk)
     rss = _weighted_rss(sub.model, points, values, w)
     fit = _sharing_fit(sub.model, first[np.asarray(sub.center_index)], sub.history_centers, sub.history_rms,
                        sub.iterations, rss, data_ss, count, _finite(sub.model.weights, sub.model.poly), True,
@@ -827,6 +883,12 @@ def fit_homogeneous(samples: Samples, n_centers: int, m_w: float = 0.3, smoothin
     Extra keyword arguments go to `fit_sharing` (`tol`, `n_init`, `n_add`,
     `chunk`). The paper's $m_w$ is 0.1–0.5. `throw=True` raises
     `SolveError` unless the fit's status is `Status.converged`.
+
+    **Status and `tol`.** Pass `tol` (the relative weighted RMS residual
+    over the samples, $\\sqrt{\\sum ((f_i - \\tilde f_i)\\cos\\theta_i)^2 / \\sum (f_i\\cos\\theta_i)^2}$)
+    to have the status judge the fit: `tolerance_not_reached` when
+    `rel_rms > tol` after `n_centers` centres. Without `tol`, `converged`
+    only means the solve succeeded, whatever `rel_rms` is.
     """
     _check_samples(samples)
     m_w = check_float(m_w, "m_w", strict=True)
@@ -844,7 +906,8 @@ def fit_sbrdf(samples: Samples, n_centers: int, m_xy: float = 0.3, m_w: float = 
     Reflectance sharing: one 5-D interpolant over all surface points, so
     angular samples seen at one point inform its neighbours (sec. 7). The
     paper's $m_{xy}$ is 0.2–0.4 for $(x, y) \\in [0, 1]^2$. Extra keyword
-    arguments and `throw` as in `fit_homogeneous`.
+    arguments, `throw` and the status's judgement of `tol` as in
+    `fit_homogeneous`.
     """
     _check_samples(samples)
     m_xy, m_w = check_float(m_xy, "m_xy", strict=True), check_float(m_w, "m_w", strict=True)
@@ -938,7 +1001,9 @@ def fit_dichromatic(
     `colors` `(L, 3)` unit RGB source colours $\\hat s$; `normal`, `view`,
     `lights`, `xy`, `irradiance`, `mask` as in `reflectance_samples`.
     Pixels never lit keep the median albedo of the others. `throw=True`
-    raises `SolveError` unless both fits converged (`fit_homogeneous`).
+    raises `SolveError` unless both fits converged (`fit_homogeneous`); a
+    `tol` keyword applies to both fits, and the status is the worse of
+    theirs (`tolerance_not_reached` when either residual is above `tol`).
     """
     m_xy, m_w = check_float(m_xy, "m_xy", strict=True), check_float(m_w, "m_w", strict=True)
     dimg = np.asarray(diffuse_images, np.float64)

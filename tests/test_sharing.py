@@ -106,6 +106,73 @@ def test_result_contract(rng):
         solvers.fit_sharing(x, y, 40, tol=1e-9, n_add=10, throw=True)
 
 
+def test_status_judges_the_requested_tol(rng):
+    """The status reflects the final residual against `tol`, both sides; greedy, smoothing spline and image fits."""
+    x, y = _data(rng, 300, 3)
+    # smoothing spline with every sample a centre: its residual (independent: scipy) decides the status
+    ref = RBFInterpolator(x, y, kernel="linear", degree=1, smoothing=0.5)(x)
+    rel = np.sqrt(((y - ref) ** 2).sum() / (y**2).sum())
+    assert rel > 1e-3
+    above = solvers.fit_sharing(x, y, 300, smoothing=0.5, tol=0.5 * rel)
+    below = solvers.fit_sharing(x, y, 300, smoothing=0.5, tol=2.0 * rel)
+    np.testing.assert_allclose(float(above.rel_rms), rel, rtol=1e-6)
+    assert solvers.status_name(above.status) == "tolerance_not_reached"
+    assert solvers.status_name(below.status) == "converged"
+    # image fit (eq. 12): 30 centres on Oren-Nayar data; the residual recomputed from the model and the samples
+    normal, mask, _ = Z.sphere_geometry(24)
+    lights = Z.theta_d_lights(np.array([0.2, 0.5, 0.8, 1.1, 1.3]))
+    smp = S.reflectance_samples(Z.render_images(Z.oren_nayar_brdf, normal, mask, lights), normal, Z.VIEW, lights,
+                                mask=mask, min_cos=0.1)
+    free = S.fit_homogeneous(smp, 30, n_add=5)
+    f, c = np.asarray(smp.values), np.asarray(smp.cos_i)[:, None]
+    r = (f - np.asarray(free.fit(smp.points))) * c
+    rel_img = np.sqrt((r**2).sum() / ((f * c) ** 2).sum())
+    np.testing.assert_allclose(float(free.rel_rms), rel_img, rtol=1e-6)
+    assert solvers.status_name(free.status) == "converged"  # no tol asked: no quality claim (documented)
+    tight = S.fit_homogeneous(smp, 30, n_add=5, tol=0.5 * rel_img)
+    assert solvers.status_name(tight.status) == "tolerance_not_reached" and float(tight.rel_rms) > 0.5 * rel_img
+    with pytest.raises(solvers.SolveError, match="tolerance_not_reached"):
+        S.fit_homogeneous(smp, 30, n_add=5, tol=0.5 * rel_img, throw=True)
+    loose = S.fit_homogeneous(smp, 30, n_add=5, tol=1.5 * rel_img)
+    assert solvers.status_name(loose.status) == "converged" and float(loose.rel_rms) <= 1.5 * rel_img
+
+
+def _streak(pred, truth, normal, ok, light, n_rings=10):
+    """The along-ring part of the prediction error, relative: $\\sqrt{\\sum_{rings}\\sum (e - \\bar e_{ring})^2 / \\sum t^2}$.
+
+    Rings: pixels binned by $\\theta_h$ (angle of the normal to the half vector, equal-count bins). An
+    isotropic BRDF's error that only depends on $\\theta_h$ has none; radial streaks (error varying with the
+    azimuth about the highlight) are all of it.
+    """
+    h = (light + Z.VIEW) / np.linalg.norm(light + Z.VIEW)
+    th = np.arccos(np.clip(normal[ok] @ h, -1, 1))
+    e = pred[ok] - truth[ok]
+    edges = np.quantile(th, np.linspace(0, 1, n_rings + 1))
+    b = np.clip(np.searchsorted(edges, th, side="right") - 1, 0, n_rings - 1)
+    within = sum(((e[b == k] - e[b == k].mean(0)) ** 2).sum() for k in range(n_rings))
+    return within, (truth[ok] ** 2).sum()
+
+
+def test_greedy_spread_removes_radial_streaks():
+    """8 directional lights, Oren-Nayar sphere, held-out lights: spread-out greedy centres remove the streaks."""
+    normal, mask, _ = Z.sphere_geometry(64)
+    l_in, l_out = Z.cone_lights(8, 0.9), Z.cone_lights(6, 0.8, phase=1.1)
+    truth = Z.render_images(Z.oren_nayar_brdf, normal, mask, l_out)
+    smp = S.reflectance_samples(Z.render_images(Z.oren_nayar_brdf, normal, mask, l_in), normal, Z.VIEW, l_in,
+                                mask=mask, min_cos=0.1)
+    vm = Z.valid_masks(normal, mask, l_out, 0.1)
+    out = {}
+    for sp in (0.0, 1.0):
+        m = S.fit_homogeneous(smp, 300, m_w=0.5, spread=sp)
+        pred = np.stack([np.asarray(m.render(normal, Z.VIEW, li, mask=mask)) for li in l_out])
+        parts = [_streak(pred[j], truth[j], normal, vm[j], l_out[j]) for j in range(len(l_out))]
+        out[sp] = (Z.relative_rms(pred, truth, vm), math.sqrt(sum(p[0] for p in parts) / sum(p[1] for p in parts)))
+    (err0, streak0), (err1, streak1) = out[0.0], out[1.0]
+    assert streak0 > 0.06 and err0 > 0.08  # the artefact is there with plain top-n_add (measured 8.3 %, 9.5 %)
+    assert streak1 < 0.35 * streak0 and streak1 < 0.03  # measured 2.4 %
+    assert err1 < 0.035  # measured 2.7 %
+
+
 def _render_case(n_px=12):
     normal, mask, xy = Z.sphere_geometry(n_px)
     mask = mask & (np.asarray(xy)[..., 0] < 0.7)  # part of the frame only
@@ -316,10 +383,10 @@ def test_homogeneous_protocol_full(which):
     print(which, r["valid"], r["all"])
     v = r["valid"]
     assert v["rbf1000"] < v["ward"]
-    if which == "metal":
-        assert v["rbf1000"] < min(v[f"lafortune{k}"] for k in (1, 3, 6))
-    # Known shortfall (reported on the issue): on Oren-Nayar the 1,000-centre RBF (4.9 % valid) does not beat
-    # the best fitted Lafortune model (4.3 %); it does beat Ward (15 %).
+    # fig. 9: the RBF beats every fitted Lafortune model on both BRDFs. On Oren-Nayar it did not with the plain
+    # top-n_add greedy rule (4.9 % vs 4.3 %); with spread-out picks (fit_sharing `spread`, docs/sharing.md) the
+    # 1,000-centre RBF measured 1.65 % vs Lafortune 4.3 % at n_px = 64 (Ward 14.8 %).
+    assert v["rbf1000"] < min(v[f"lafortune{k}"] for k in (1, 3, 6))
 
 
 @pytest.mark.slow
