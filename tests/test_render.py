@@ -102,6 +102,26 @@ def test_disk_light_sh_closed_form(rng):
     assert float(jaxsh.disk_energy(r, 2.0)) == pytest.approx(c[0] * np.sqrt(4 * np.pi))
 
 
+@pytest.mark.parametrize("r", [0.00465, 0.05, 0.5, 1.2, 2.5])
+def test_disk_light_sh_small_caps_to_rounding(r):
+    """Zonal coefficients against $2\\pi\\int_0^r Y_{l0}(\\theta)\\sin\\theta\\,d\\theta$ by
+    100-node Gauss–Legendre in θ (smooth integrand: exact to rounding) with scipy's Legendre polynomials.
+
+    A sun-sized cap (0.27°) loses 11 digits in $P_{l-1}(\\cos r) - P_{l+1}(\\cos r)$
+    (measured 4.5e-12 relative before the derivative form, 2.3e-15 after).
+    """
+    from scipy import special
+
+    lmax = 12
+    got = np.asarray(jaxsh.disk_light_sh(np.array([0.0, 0.0, 1.0]), r, 1.0, lmax))
+    x, w = np.polynomial.legendre.leggauss(100)
+    t, w = (x + 1) * r / 2, w * r / 2
+    for l in range(lmax + 1):
+        ref = 2 * np.pi * np.sqrt((2 * l + 1) / (4 * np.pi)) * np.sum(w * special.eval_legendre(l, np.cos(t)) * np.sin(t))
+        assert got[l * l + l] == pytest.approx(ref, rel=1e-13, abs=1e-14 * abs(got[0])), l  # abs: near-zero bands
+    assert float(jaxsh.disk_energy(r, 1.0)) == pytest.approx(2 * np.pi * np.sum(w * np.sin(t)), rel=1e-14)
+
+
 def test_slow_specular_tends_to_mirror_lookup(rng):
     """As sigma -> 0 the filtered lighting is the lighting itself at the mirror direction (eq. 22)."""
     lmax = 6
