@@ -366,8 +366,12 @@ def factorize(
 
     **Arguments:**
 
-    - `obs`: `Observations` of a homogeneous object (visibility terms used
-      when present).
+    - `obs`: `Observations` of a homogeneous object. Visibility terms (R&H
+      sec. 6.4) are used when present: `transfer` and `reflected_visibility`
+      in every eq.-25 solve, and `fast_visibility` for the source of the
+      refinement (its one column, or of several the one whose shadow fits
+      the data best at the stage-1 parameters), so its rows are those of
+      `jaxsh.practical_terms` with that shadow.
     - `lmax`: the lighting cutoff $l^*$ (>= 3; R&H use 12).
     - `fresnel`: fit $\\mu$ (False: $F = 1$, metals).
     - `find_sigma`, `region`: estimate σ from the brightest compact source of
