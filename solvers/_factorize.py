@@ -366,8 +366,12 @@ def factorize(
 
     **Arguments:**
 
-    - `obs`: `Observations` of a homogeneous object (visibility terms used
-      when present).
+    - `obs`: `Observations` of a homogeneous object. Visibility terms (R&H
+      sec. 6.4) are used when present: `transfer` and `reflected_visibility`
+      in every eq.-25 solve, and `fast_visibility` for the source of the
+      refinement (its one column, or of several the one whose shadow fits
+      the data best at the stage-1 parameters), so its rows are those of
+      `jaxsh.practical_terms` with that shadow.
     - `lmax`: the lighting cutoff $l^*$ (>= 3; R&H use 12).
     - `fresnel`: fit $\\mu$ (False: $F = 1$, metals).
     - `find_sigma`, `region`: estimate σ from the brightest compact source of
@@ -514,8 +518,14 @@ def _stage1_final(obs, mu, lmax, chunk, rcond):
     return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps
 
 
-def _fast_column(n, v, mu, sigma, d):
-    """Diffuse and specular rows of a unit-energy delta source at d (eqs. 23, 24): (N,), (N,)."""
+def _fast_column(n, v, mu, sigma, d, fvis=None):
+    """Diffuse and specular rows of a unit-energy delta source at d (eqs. 23, 24): (N,), (N,).
+
+    `fvis` `(N,)`: the source's visibility $V$ at each pixel (R&H sec. 6.4: "we check if these sources are
+    shadowed"), or None (convex object, $V = 1$). Both rows are those of `jaxsh.practical_terms` for one fast
+    source of unit energy, `fast_visibility=fvis[:, None]`: $V\\,[\\cos\\theta_i > 0]\\cos\\theta_i$ and
+    $F\\,V\\,[\\cos\\theta_i > 0]\\,T(\\theta_h)/(4\\cos\\theta_o)$, zero where $\\cos\\theta_o \\le 0$.
+    """
     cos_o = jnp.sum(n * v, -1)
     vis = cos_o > 0
     cos_o = jnp.where(vis, cos_o, 1.0)
@@ -524,7 +534,8 @@ def _fast_column(n, v, mu, sigma, d):
     lit = (cos_i > 0) & vis
     th = jaxsh.half_angle(d[None, :], v, n)
     t = jnp.exp(-((th / sigma) ** 2)) / (jnp.pi * sigma**2)
-    return jnp.where(lit, cos_i, 0.0), jnp.where(lit, f * t / (4 * cos_o), 0.0)
+    v_d = jnp.ones_like(cos_o) if fvis is None else fvis
+    return jnp.where(lit, cos_i * v_d, 0.0), jnp.where(lit, f * v_d * t / (4 * cos_o), 0.0)
 
 
 class _Joint(eqx.Module):
@@ -537,12 +548,14 @@ class _Joint(eqx.Module):
     b: Array
     normals: Array
     views: Array
+    fvis: Array | None  # (N,) visibility of the found source (a column of `fast_visibility`), or None
 
 
-def _joint(o: Observations, mu, lmax, chunk, rcond) -> _Joint:
+def _joint(o: Observations, mu, lmax, chunk, rcond, column) -> _Joint:
     bl = _blocks(o, mu, lmax, chunk, rcond)
     d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax)
-    return _Joint(bl, d, s, o.weights, o.values, o.normals, o.views)
+    fvis = None if column is None else o.fast_visibility[:, column]
+    return _Joint(bl, d, s, o.weights, o.values, o.normals, o.views, fvis)
 
 
 def _joint_rss(jt: _Joint, ks, sigma, mu, d, lmax):
@@ -550,7 +563,7 @@ def _joint_rss(jt: _Joint, ks, sigma, mu, d, lmax):
     dt = jt.b.dtype
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     kd = 1.0 - ks
-    fd, fs = _fast_column(jt.normals, jt.views, mu, sigma, d)
+    fd, fs = _fast_column(jt.normals, jt.views, mu, sigma, d, jt.fvis)
     w = jt.w
     # cross terms with the (filtered) slow columns
     dfd, dfs = jt.drows.T @ (w * fd), jt.drows.T @ (w * fs)  # (9,)
@@ -564,15 +577,36 @@ def _joint_rss(jt: _Joint, ks, sigma, mu, d, lmax):
 
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond):
-    jt_sub = _joint_jit(sub, mu, lmax, chunk, rcond)
+    column = _source_column(sub, mu, ks0, d, sigma0, lmax, chunk, rcond)
+    jt_sub = _joint_jit(sub, mu, lmax, chunk, rcond, column)
     p, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
-    jt = jt_sub if sub is obs else _joint_jit(obs, mu, lmax, chunk, rcond)
+    jt = jt_sub if sub is obs else _joint_jit(obs, mu, lmax, chunk, rcond, column)
     return _refine_final(jt, p, mu, d, lmax, status, its)
 
 
+def _source_column(sub, mu, ks0, d, sigma0, lmax, chunk, rcond):
+    """The column of `fast_visibility` that is the found source's visibility (None: no such terms).
+
+    One column: that one. Several (candidate sources, e.g. the lights of the capture): the one whose
+    profiled RSS at the stage-1 $(K_s, \\sigma)$ is smallest, i.e. whose shadow the data show.
+    """
+    fv = sub.fast_visibility
+    if fv is None or fv.shape[1] == 0:
+        return None
+    if fv.shape[1] == 1:
+        return 0
+    rss = [float(_column_rss(sub, mu, ks0, d, sigma0, lmax, chunk, rcond, jnp.asarray(j))) for j in range(fv.shape[1])]
+    return int(np.nanargmin(rss)) if np.any(np.isfinite(rss)) else 0
+
+
 @eqx.filter_jit
-def _joint_jit(o, mu, lmax, chunk, rcond):
-    return _joint(o, mu, lmax, chunk, rcond)
+def _column_rss(o, mu, ks, d, sigma, lmax, chunk, rcond, column):
+    return jnp.sum(_joint_rss(_joint(o, mu, lmax, chunk, rcond, column), ks, sigma, mu, d, lmax)[0])
+
+
+@eqx.filter_jit
+def _joint_jit(o, mu, lmax, chunk, rcond, column):
+    return _joint(o, mu, lmax, chunk, rcond, column)
 
 
 def _unpack(p, c):
