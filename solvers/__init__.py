@@ -46,3 +46,4 @@ from ._sharing import (
     reflectance_samples as reflectance_samples,
     render_rbf as render_rbf,
 )
+from ._sharing_study import sharing_tradeoff as sharing_tradeoff
