@@ -221,7 +221,7 @@ def _project(image, lmax):
         else:
             spec = jnp.fft.fft(ft, axis=-1)[..., m % w]
         # e^{-i m phi_j} = e^{-i m pi / W} e^{-2 pi i m j / W}
-        spec = spec * jnp.asarray(np.exp(-1j * np.pi * m / w), spec.dtype)
+        spec = spec * jnp.asarray(np.exp(-1j * np.pi * m / w), spec.dtype)[None, None, :]
         spec = jnp.moveaxis(spec, -1, 1)  # (H, M, C)
         re, im = jnp.real(spec), jnp.imag(spec)
     # Quadrature weights in theta and phi.

@@ -230,3 +230,36 @@ def test_fit_sh_errors(rng):
         jaxsh.fit_sh(d[None], np.ones(10), 2)
     with pytest.raises(Exception, match="ridge"):
         jaxsh.fit_sh(d, np.ones(10), 2, ridge=-1.0).block_until_ready()
+
+
+@pytest.mark.parametrize("shape,lmax", [((33, 60, 2), 12), ((8, 16, 1), 12), ((16, 2048, 3), 32)])
+def test_row_dft_products_match_numpy_fft(shape, lmax):
+    """The matrix-product row DFT of `project_latlong` against NumPy's FFT (an independent transform).
+
+    Row j sits at phi_j = 2 pi (j + 1/2) / W, so the wanted sum is rfft(f)[m] e^{-i pi m / W};
+    m beyond W/2 (8x16 at lmax 12) folds by aliasing, as the full FFT does.
+    """
+    from jaxsh._transforms import _row_dft_matmul
+
+    f = np.random.default_rng(3).normal(size=shape)
+    w = shape[1]
+    m = np.arange(lmax + 1)
+    want = np.fft.fft(f, axis=1)[:, m % w, :] * np.exp(-1j * np.pi * m / w)[None, :, None]
+    re, im = (np.asarray(a) for a in _row_dft_matmul(jnp.asarray(f), lmax))
+    scale = np.abs(f).sum(axis=1).max()
+    np.testing.assert_allclose(re, want.real, atol=1e-14 * scale)
+    np.testing.assert_allclose(im, want.imag, atol=1e-14 * scale)
+
+
+def test_fft_row_path_agrees_with_the_product_path(monkeypatch):
+    """Above 16 log2 W orders `project_latlong` takes an FFT per row instead: both paths, one answer."""
+    import jaxsh._transforms as tr
+
+    img = np.random.default_rng(4).normal(size=(24, 48, 3))
+    a = np.asarray(jaxsh.project_latlong(img, 10))
+    jax.clear_caches()
+    monkeypatch.setattr(tr, "_use_dft_matmul", lambda lmax, w: False)
+    b = np.asarray(jaxsh.project_latlong(img, 10))
+    jax.clear_caches()
+    np.testing.assert_allclose(a, b, atol=1e-13 * np.abs(a).max())
+    assert not np.array_equal(a, b)  # two different programs ran (else the test compared one path with itself)
