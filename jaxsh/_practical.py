@@ -136,14 +136,32 @@ class PracticalTerms(eqx.Module):
         return self.components(kd, ks, mu, sigma).total
 
 
+def _band_groups(lmax: int):
+    """Consecutive bands `[a, b)` projected by one matrix product each in `_sh_bands`.
+
+    One product per band would be `lmax + 1` small dots (each its own XLA kernel: ~2 s of compile
+    time at lmax 31); one product per group of `g` bands costs `g` times the multiply-adds of the
+    band sums (zeros of the block matrix) but compiles in a fraction of it. `g` keeps about 1024
+    coefficients per group: one product up to lmax 31.
+    """
+    g = max(1, min(32, 1024 // (lmax + 1)))
+    return [(a, min(a + g, lmax + 1)) for a in range(0, lmax + 1, g)]
+
+
 def _sh_bands(dirs, coeffs, lmax: int, chunk: int):
     """$P_l = \\sum_m c_{lm} Y_{lm}$ per band at (N, 3) unit directions: (N, lmax+1, C), in pixel chunks."""
+    c = coeffs.shape[1]
+    mats = []
+    for a, b in _band_groups(lmax):
+        # (b² - a², (b - a) C) block matrix: row l²+l+m holds c_{lm} in the columns of band l
+        deg = sh_degrees(b - 1)[a * a :]
+        sel = (deg[:, None] == np.arange(a, b)[None, :]).astype(np.float64)
+        mats.append((coeffs[a * a : b * b, None, :] * jnp.asarray(sel, coeffs.dtype)[:, :, None]).reshape(b * b - a * a, (b - a) * c))
 
     def one(x):
         y = _real_sh_flat(x, lmax)  # (n, nc)
-        return jnp.stack(
-            [y[:, l * l : (l + 1) ** 2] @ coeffs[l * l : (l + 1) ** 2] for l in range(lmax + 1)], axis=1
-        )
+        parts = [(y[:, a * a : b * b] @ m).reshape(y.shape[0], b - a, c) for (a, b), m in zip(_band_groups(lmax), mats)]
+        return parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis=1)
 
     npx = dirs.shape[0]
     if npx <= chunk:
