@@ -46,3 +46,9 @@ from ._sharing import (
     reflectance_samples as reflectance_samples,
     render_rbf as render_rbf,
 )
+from ._scale import (
+    fit_many as fit_many,
+    pad_observations as pad_observations,
+    pixel_mesh as pixel_mesh,
+    shard_observations as shard_observations,
+)
