@@ -22,8 +22,12 @@ result beyond rounding (measured: 1e-12 relative in float64,
 
 **Many captures: shard the batch.** `fit_many` pads every capture to a
 bucket size (a power of two) with weight-0 samples, stacks the captures of a
-bucket, `vmap`s the `fit_brdf` program over them (one compiled program per
-bucket) and, with a `mesh`, shards the batch axis over the devices. Each
+bucket and runs the `fit_brdf` program over them (one compiled program per
+bucket): `vmap`ped on one device; with a `mesh`, the batch axis is sharded
+(`NamedSharding`, GSPMD) — on CPU devices as a `(devices, members)` stack,
+`vmap`ped over the device axis and one member at a time (`lax.map`) within a
+device's block (the CPU LAPACK kernels of a batched fit deadlock with forced
+host devices, see `fit_many`). Each
 capture keeps its own status: a degenerate member (black images, zero
 weights) reports `no_signal` and does not change the others.
 
@@ -158,11 +162,25 @@ def _u_grid(fresnel: bool, dt):
     return jnp.asarray(np.stack([np.log(mg.ravel() - 1), np.log(sg.ravel())], 1) if fresnel else np.log(sg.ravel())[:, None], dt)
 
 
+def _fit_one(args, u_grid, fresnel, refine, max_steps, rtol, atol):
+    t, b, w = args
+    return _fit_brdf(t, b, w, None, u_grid, 0, fresnel, None, refine, max_steps, rtol, atol)
+
+
 @eqx.filter_jit
-def _fit_batch(terms, b, w, u_grid, fresnel, refine, max_steps, rtol, atol):
-    return jax.vmap(lambda t, bb, ww: _fit_brdf(t, bb, ww, None, u_grid, 0, fresnel, None, refine, max_steps, rtol, atol))(
-        terms, b, w
-    )
+def _fit_batch(terms, b, w, u_grid, fresnel, refine, max_steps, rtol, atol, blocks):
+    """The fits of a stack of captures: `vmap`ped (`blocks` False), or, with `(D, m, ...)` inputs sharded over
+    `D` devices (`blocks` True), `vmap`ped over the device axis and one member at a time (`lax.map`) within a block.
+
+    In the second form every LAPACK call (the Levenberg-Marquardt SVD, the covariance `eigh`) has batch `D` and,
+    once GSPMD splits the device axis, batch 1 on each device: jaxlib's CPU kernels never fan a batch out into the
+    intra-op pool that the forced host devices share (`fit_many`)."""
+    def one(args):
+        return _fit_one(args, u_grid, fresnel, refine, max_steps, rtol, atol)
+
+    if not blocks:
+        return jax.vmap(lambda *a: one(a))(terms, b, w)
+    return jax.vmap(lambda *a: jax.lax.map(one, a))(terms, b, w)
 
 
 @blas_single_thread
@@ -194,13 +212,20 @@ def fit_many(
     Each capture is padded with weight-0 samples to a bucket size (the next
     power of two, at least `min_bucket`); captures with the same bucket and
     the same lighting structure (`lmax`, fast sources, channels) are stacked
-    and fitted by one `vmap`ped program (one compilation per bucket). With a
-    mesh the stack is padded with weight-0 copies to a multiple of the mesh
-    size (their results are dropped) and sharded along the batch axis. Every
-    capture gets its own status (a degenerate one `no_signal` or
-    `ill_conditioned`); the others are unaffected: the `vmap`ped loops stop
-    each member at its own tolerance. The results equal `fit_brdf`'s to
-    rounding.
+    and fitted by one program (one compilation per bucket), `vmap`ped without
+    a mesh. With a mesh the stack is padded with weight-0 copies to a multiple
+    of the mesh size (their results are dropped) and sharded along the batch
+    axis; each device fits its block `vmap`ped on a GPU and one capture at a
+    time (`lax.map`) on CPU devices. The reason:
+    a `vmap`ped fit batches its LAPACK calls (the Levenberg–Marquardt SVD, the
+    covariance `eigh`), jaxlib runs a batched CPU LAPACK call by fanning out
+    into the intra-op thread pool and waiting inside it, and forced host
+    devices (`--xla_force_host_platform_device_count`) share that one pool:
+    with 4 devices on 2 cores the batched program hung (native stacks in
+    `jax::ParallelBatchMap`). Every capture gets its own status (a degenerate
+    one `no_signal` or `ill_conditioned`); the others are unaffected: each
+    member stops at its own tolerance. The results equal `fit_brdf`'s to
+    rounding (the padding reorders the sums).
     """
     captures = list(captures)
     if not captures:
@@ -212,6 +237,9 @@ def fit_many(
     if mesh is not None:
         axis = mesh.axis_names[0] if axis is None else axis
         n_dev = _mesh_axis(mesh, axis)
+    # forced host devices share one intra-op pool, and jaxlib's batched CPU LAPACK kernels wait on that pool
+    # from inside it (a deadlock, measured): on a CPU mesh each device fits its members one at a time
+    batched = mesh is None or mesh.devices.flat[0].platform != "cpu"
     groups: dict = {}
     for i, cap in enumerate(captures):
         if not (isinstance(cap, (tuple, list)) and len(cap) == 2):
@@ -240,11 +268,16 @@ def fit_many(
             t0, b0, w0 = stack[0]
             stack += [(t0, b0, jnp.zeros_like(w0))] * (n_dev - len(stack) % n_dev)
         terms, b, w = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *stack)
+        blocks = mesh is not None and not batched
         if mesh is not None:
+            if blocks:  # (B, ...) -> (D, B / D, ...): device d fits members [d B/D, (d+1) B/D)
+                terms, b, w = jax.tree_util.tree_map(lambda a: a.reshape((n_dev, -1) + a.shape[1:]), (terms, b, w))
             sh = NamedSharding(mesh, PartitionSpec(axis))
             terms, b, w = jax.tree_util.tree_map(lambda a: _global_array(a, sh), (terms, b, w))
-        res = _fit_batch(terms, b, w, _u_grid(fresnel, dt), fresnel, refine, int(max_steps), rt, at)
+        res = _fit_batch(terms, b, w, _u_grid(fresnel, dt), fresnel, refine, int(max_steps), rt, at, blocks)
         host = jax.device_get(res)  # one transfer, then one result per capture
+        if blocks:
+            host = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), host)
         for k, (i, *_rest) in enumerate(members):
             out[i] = jax.tree_util.tree_map(lambda a, k=k: jnp.asarray(a[k]), host)
     return out

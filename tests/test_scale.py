@@ -32,9 +32,6 @@ def _env(devices=None):
     flags = [f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform_device_count" not in f]
     if devices:
         flags.append(f"--xla_force_host_platform_device_count={devices}")
-        # forced host devices share one intra-op thread pool: jaxlib's batched LAPACK kernels (eigh) wait on
-        # that pool from inside it and deadlocked with 4 devices on 2 cores (measured); docs/howto_scale.md
-        flags.append("--xla_cpu_multi_thread_eigen=false")
     env["XLA_FLAGS"] = " ".join(flags)
     env["JAX_PLATFORMS"] = "cpu"
     return env
@@ -54,29 +51,32 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
     for name in ("fit_brdf", "inverse_lighting"):
         got = r[name]
         assert got["status"][0] == got["status"][1] == "converged", (name, got)
-        assert got["rel"] < TOL, (name, got)  # every float leaf: estimate, std errors, rms, n_obs, ...
+        # every leaf (estimate, std errors, rms, n_obs, ...) but the iteration counts, which rounding may shift
+        assert got["rel"] < TOL, (name, got)
     assert abs(r["fit_brdf"]["sigma"][1] - 0.15) < 0.01  # a real fit, not a trivial one
 
 
-@pytest.mark.skip(reason="did not finish within 400 s on 4 forced host devices of a loaded 2-core machine "
-                  "(a hang like jaxlib's batched-eigh one is not excluded); unverified, see docs/howto_scale.md")
+@pytest.mark.skip(reason="too slow for the suite on CPU: not a hang (py-spy: compiling), it finished in ~17 min on "
+                  "4 forced host devices of a 2-core machine at load 12, both statuses converged, simplex step "
+                  "counts differ by rounding; the estimates' agreement is not measured yet (docs/howto_scale.md)")
 def test_sharded_factorize_equals_one_device():
     r = _worker("equal", "factorize")
     assert r["factorize"]["status"][0] == r["factorize"]["status"][1] == "converged"
     assert r["factorize"]["rel"] < TOL, r
 
 
-def test_fit_many_one_degenerate_member_sharded_batch():
-    r = _worker("many")
-    assert r["devices"] == 4
+def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
+    r = _worker("many", "vmap", "sharded")
+    assert r["devices"] == 4 and len(set(r["n"])) == 2 and max(r["n"]) <= 256  # two sizes, one bucket
     single = r["status_single"]
+    others = [k for k in range(len(single)) if k != 2]
     assert single[2] == "no_signal"  # the all-zero member
-    assert [s for k, s in enumerate(single) if k != 2] == ["converged"] * 4
+    assert [single[k] for k in others] == ["converged"] * len(others)
     assert r["status_vmap"] == single and r["status_sharded"] == single
-    for k in (0, 1, 3, 4):  # the others are unaffected: each equals its own fit_brdf
-        assert r["vmap_vs_single"][k] < 1e-8, r
-        assert r["sharded_vs_single"][k] < 1e-8, r
-        assert abs(r["sigma"][k] - 0.15) < 0.02
+    for k in others:  # the others are unaffected: each equals its own fit_brdf (the padding reorders the sums)
+        assert r["vmap_vs_single"][k] < TOL, r
+        assert r["sharded_vs_single"][k] < TOL, r
+        assert abs(r["sigma_single"][k] - 0.15) < 0.02
 
 
 def _free_port():
