@@ -221,8 +221,9 @@ def fit_many(
     covariance `eigh`), jaxlib runs a batched CPU LAPACK call by fanning out
     into the intra-op thread pool and waiting inside it, and forced host
     devices (`--xla_force_host_platform_device_count`) share that one pool:
-    with 4 devices on 2 cores the batched program hung (native stacks in
-    `jax::ParallelBatchMap`). Every capture gets its own status (a degenerate
+    with 4 devices on 2 cores a batched `eigh` hung (native stacks in
+    `jax::ParallelBatchMap`), and a `vmap` over the sharded batch did not
+    finish within 600 s. Every capture gets its own status (a degenerate
     one `no_signal` or `ill_conditioned`); the others are unaffected: each
     member stops at its own tolerance. The results equal `fit_brdf`'s to
     rounding (the padding reorders the sums).
