@@ -21,7 +21,6 @@ import numpy as np
 if __name__ == "__main__":
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-FIT_TOL = 1e-11  # the stopping tolerances of the compared fits (default 1e-8)
 TRUTH = dict(kd=[0.3, 0.2, 0.1], ks=[0.4, 0.4, 0.4], mu=1.5, sigma=0.15)
 
 
@@ -122,10 +121,8 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
            "shards": len(sobs.values.sharding.device_set)}
     if "fit_brdf" in which or "inverse_lighting" in which:
         print("fit_brdf", file=sys.stderr, flush=True)
-        # tight stopping tests: a different rounding of the sums may change the search path (the step counts),
-        # and both runs must then still stop at the same optimum to well below TOL
-        ref = solvers.fit_brdf(obs, lighting, rtol=FIT_TOL, atol=FIT_TOL)
-        got = solvers.fit_brdf(sobs, lighting, rtol=FIT_TOL, atol=FIT_TOL)
+        ref = solvers.fit_brdf(obs, lighting)
+        got = solvers.fit_brdf(sobs, lighting)
         out["fit_brdf"] = dict(compare(got, ref), status=[_status(got), _status(ref)],
                                sigma=[float(got.brdf.sigma), float(ref.brdf.sigma)])
     if "inverse_lighting" in which:
@@ -168,17 +165,18 @@ def run_many(which=("vmap", "sharded")):
     jax.config.update("jax_enable_x64", True)
     caps = many_captures()
     out = {"devices": len(jax.devices()), "n": [o.n_samples for o, _ in caps]}
-    singles = [solvers.fit_brdf(o, lit, rtol=FIT_TOL, atol=FIT_TOL) for o, lit in caps]
+    singles = [solvers.fit_brdf(o, lit) for o, lit in caps]
     out["status_single"] = [_status(r) for r in singles]
     out["sigma_single"] = [float(r.brdf.sigma) for r in singles]
     for name in which:
         print(name, file=sys.stderr, flush=True)
         mesh = solvers.pixel_mesh(axis="batch") if name == "sharded" else None
-        got = solvers.fit_many(caps, mesh=mesh, rtol=FIT_TOL, atol=FIT_TOL)
+        got = solvers.fit_many(caps, mesh=mesh)
         out[f"status_{name}"] = [_status(r) for r in got]
         cmp = [compare(a, b) for a, b in zip(got, singles)]
         out[f"{name}_vs_single"] = [c["rel"] for c in cmp]
         out[f"{name}_steps_differ"] = [c["steps"] for c in cmp]
+    out["sigma"] = [float(r.brdf.sigma) for r in got]
     return out
 
 
@@ -194,7 +192,7 @@ def run_dist(port: int, rank: int):
     obs = uneven(obs, 2)
     mesh = solvers.pixel_mesh()  # every process's devices
     sobs = solvers.shard_observations(obs, mesh)
-    fit = solvers.fit_brdf(sobs, lighting, rtol=FIT_TOL, atol=FIT_TOL)
+    fit = solvers.fit_brdf(sobs, lighting)
     il = solvers.inverse_lighting(sobs, fit.brdf, 6)
     out = {"rank": rank, "processes": jax.process_count(), "global_devices": len(jax.devices()),
            "local_devices": len(jax.local_devices()), "status": [_status(fit), _status(il)],
@@ -214,7 +212,7 @@ def run_single_reference():
     jax.config.update("jax_enable_x64", True)
     obs, lighting = make_capture()
     obs = uneven(obs, 2)
-    fit = solvers.fit_brdf(obs, lighting, rtol=FIT_TOL, atol=FIT_TOL)
+    fit = solvers.fit_brdf(obs, lighting)
     il = solvers.inverse_lighting(obs, fit.brdf, 6)
     return {"kd": np.asarray(fit.brdf.kd).tolist(), "ks": np.asarray(fit.brdf.ks).tolist(), "mu": float(fit.brdf.mu),
             "sigma": float(fit.brdf.sigma), "rms": float(fit.rms), "coeffs": np.asarray(il.coeffs).ravel().tolist(),

@@ -24,6 +24,13 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 WORKER = os.path.join(HERE, "_scale_worker.py")
 TOL = 1e-10  # float64, relative to each result leaf's largest entry
+# the iterative fits (simplex + Levenberg-Marquardt) agree only to their stopping tolerances (rtol = atol = 1e-8 in
+# float64): rounding of the reordered sums moves the iterates (measured up to 1.1e-8, also with equal step counts)
+STOP_TOL = 1e-7
+
+
+def _agrees(rel, steps_differ):
+    return rel < STOP_TOL
 
 
 def _env(devices=None):
@@ -52,7 +59,8 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
         got = r[name]
         assert got["status"][0] == got["status"][1] == "converged", (name, got)
         # every leaf (estimate, std errors, rms, n_obs, ...) but the iteration counts, which rounding may shift
-        assert got["rel"] < TOL, (name, got)
+        assert _agrees(got["rel"], got["steps"]), (name, got)
+    assert r["inverse_lighting"]["rel"] < TOL  # a direct solve: rounding only
     assert abs(r["fit_brdf"]["sigma"][1] - 0.15) < 0.01  # a real fit, not a trivial one
 
 
@@ -62,7 +70,7 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
 def test_sharded_factorize_equals_one_device():
     r = _worker("equal", "factorize")
     assert r["factorize"]["status"][0] == r["factorize"]["status"][1] == "converged"
-    assert r["factorize"]["rel"] < TOL, r
+    assert _agrees(r["factorize"]["rel"], r["factorize"]["steps"]), r
 
 
 def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
@@ -74,8 +82,8 @@ def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
     assert [single[k] for k in others] == ["converged"] * len(others)
     assert r["status_vmap"] == single and r["status_sharded"] == single
     for k in others:  # the others are unaffected: each equals its own fit_brdf (the padding reorders the sums)
-        assert r["vmap_vs_single"][k] < TOL, r
-        assert r["sharded_vs_single"][k] < TOL, r
+        assert _agrees(r["vmap_vs_single"][k], r["vmap_steps_differ"][k]), r
+        assert _agrees(r["sharded_vs_single"][k], r["sharded_steps_differ"][k]), r
         assert abs(r["sigma_single"][k] - 0.15) < 0.02
 
 
