@@ -47,3 +47,9 @@ from ._sharing import (
     render_rbf as render_rbf,
 )
 from ._sharing_study import sharing_tradeoff as sharing_tradeoff
+from ._scale import (
+    fit_many as fit_many,
+    pad_observations as pad_observations,
+    pixel_mesh as pixel_mesh,
+    shard_observations as shard_observations,
+)

@@ -424,9 +424,12 @@ def factorize(
     rtol = (1e-7 if f64 else 1e-5) if rtol is None else float(rtol)
     atol = (1e-7 if f64 else 1e-5) if atol is None else float(atol)
     sub = obs
-    if search_pixels is not None and obs.n_samples > int(search_pixels):
+    # samples of positive weight (weight-0 padding, e.g. `shard_observations`, is never drawn nor counted)
+    n_pos = int(jnp.sum(obs.weights > 0))
+    if search_pixels is not None and n_pos > int(search_pixels):
         key = jax.random.PRNGKey(0) if key is None else key
-        idx = np.sort(np.asarray(jax.random.choice(key, obs.n_samples, (int(search_pixels),), replace=False)))
+        pos = jnp.nonzero(obs.weights > 0, size=n_pos)[0]
+        idx = np.sort(np.asarray(pos[jax.random.choice(key, n_pos, (int(search_pixels),), replace=False)]))
         sub = obs.subset(idx)
     # Stage 1: nested 1-D searches over mu (batched grid, then two zooms) and ks (golden, per channel).
     curv_rss = None
@@ -451,7 +454,7 @@ def factorize(
                 best = t[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h))
                 # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
                 bb_sub = float(jnp.sum(sub.weights[:, None] * sub.values**2))
-                curv_rss = c2 * bb_sub * obs.n_samples / sub.n_samples
+                curv_rss = c2 * bb_sub * n_pos / (n_pos if sub is obs else sub.n_samples)
         mu = jnp.asarray(1.0 + np.exp(best), dt)
         its1 = 9 + 7 + 7
     else:
@@ -485,7 +488,7 @@ def factorize(
         se_mu = jnp.asarray(jnp.inf, dt)
         if curv_rss is not None:
             # profile curvature: var(t) = s^2 / (RSS''/2), s^2 = RSS / (n - p); mu = 1 + e^t
-            nobs = obs.n_samples * obs.n_channels
+            nobs = n_pos * obs.n_channels
             s2 = float(rms) ** 2 * nobs / max(nobs - (jaxsh.num_coeffs(lmax) + 1) * obs.n_channels - 2 * obs.n_channels - 2, 1)
             se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
     std = TorranceSparrow.unchecked(se_ks, se_ks, se_mu, se_sigma)

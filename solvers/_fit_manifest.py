@@ -39,6 +39,7 @@ from ._brdf import fit_brdf
 from ._data import Lighting, TorranceSparrow, observations, practical_terms_for, predict, status_name
 from ._factorize import factorize
 from ._lighting import inverse_lighting
+from ._scale import shard_observations
 from ._render_manifest import (
     check_outputs,
     check_unsupported,
@@ -104,8 +105,11 @@ def _out_names(m: dict) -> list[str]:
     return names
 
 
-def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
-    """Run the fit a manifest asks for and write the results (module docstring). Returns `result.json`'s dict."""
+def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> dict:
+    """Run the fit a manifest asks for and write the results (module docstring). Returns `result.json`'s dict.
+
+    `mesh`: a `jax.sharding.Mesh` (`solvers.pixel_mesh`): the pixels of a Torrance-Sparrow fit are sharded
+    over it (`solvers.shard_observations`; the same result to rounding). None: one device."""
     t_all = time.perf_counter()
     timings = {}
 
@@ -216,12 +220,13 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         n_valid = obs.n_samples
     timings["setup"] = time.perf_counter() - t
     say(f"{n_valid} valid pixels in {len(gbs)} views")
+    sobs = obs if mesh is None else shard_observations(obs, mesh)  # the solvers' input; `obs` for the re-renders
     t = time.perf_counter()
     std = None
     if known is not None:
         say("known lighting: fitting " + ("Kd, Ks" if textured is None else f"per-texel {textured}") +
             ", mu, sigma (simplex + Levenberg-Marquardt, R&H sec. 6.1)")
-        res = fit_brdf(obs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
+        res = fit_brdf(sobs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
                        textured=textured)
         brdf, lighting, std = res.brdf, known, res.std_errors
         light_sh = known.total_sh(lmax)
@@ -231,14 +236,14 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True) -> dict:
         brdf = TorranceSparrow(jnp.asarray(b["kd"]), jnp.asarray(b["ks"]), None if b["mu"] is None else jnp.asarray(b["mu"]),
                                jnp.asarray(b["sigma"]))
         say(f"known BRDF: inverse lighting to l* = {lmax} (eq. 25, roughness deconvolved)")
-        res = inverse_lighting(obs, brdf, lmax, deconvolve=True)
+        res = inverse_lighting(sobs, brdf, lmax, deconvolve=True)
         lighting = res.lighting
         light_sh = res.coeffs
         display_sh = jaxsh.filter_lighting_microfacet(res.coeffs, brdf.sigma)
         std = TorranceSparrow.unchecked(jnp.zeros(3), jnp.zeros(3), None, jnp.zeros(()))
     else:
         say(f"unknown lighting and BRDF: factorization (R&H sec. 6.3), l* = {lmax}")
-        res = factorize(obs, lmax, fresnel=bool(solve.get("fresnel", True)))
+        res = factorize(sobs, lmax, fresnel=bool(solve.get("fresnel", True)))
         brdf, lighting, std = res.brdf, res.lighting, res.std_errors
         light_sh = lighting.slow_sh
         display_sh = res.filtered_sh

@@ -143,7 +143,10 @@ def eig_solve(ata, atb, bb, count, rcond, ridge):
     `inf` where a coefficient has weight in the null space), `determined` `(C, n)`, the singular values of
     $A$ `(C, n)` descending, `rss` `(C,)` ($b^Tb - 2x^TA^Tb + x^TA^TAx$, exact for any $x$) and `rank` `(C,)`.
     """
-    evals, evecs = jnp.linalg.eigh(ata)  # ascending
+    # one eigh per channel (ascending): jaxlib's batched CPU eigh waits on the intra-op thread pool from inside
+    # it, and deadlocked with several forced host devices (docs/howto_scale.md); per matrix it is the same LAPACK call
+    pairs = [jnp.linalg.eigh(ata[c]) for c in range(ata.shape[0])]
+    evals, evecs = jnp.stack([p[0] for p in pairs]), jnp.stack([p[1] for p in pairs])
     top = evals[:, -1:]
     keep = evals > rcond * top
     inv = jnp.where(keep, 1.0 / (jnp.where(keep, evals, 1.0) + ridge), 0.0)

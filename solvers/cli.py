@@ -161,13 +161,64 @@ def _demo_x64(args) -> int:
     return 0 if ok else 1
 
 
+def _fit_manifests(paths) -> list[str]:
+    """The manifests named on the command line: files as given, folders expanded to their `*.json` (sorted)."""
+    out = []
+    for p in paths:
+        if os.path.isdir(p):
+            found = sorted(os.path.join(p, f) for f in os.listdir(p) if f.endswith(".json"))
+            if not found:
+                raise ValueError(f"{p}: the folder holds no manifest (*.json)")
+            out += found
+        else:
+            out.append(p)
+    return out
+
+
+def _devices_mesh(n):
+    """A mesh over `n` devices for `--devices` (None: one device, no mesh). On CPU, asks JAX for `n` host devices."""
+    if n is None:
+        return None
+    import jax
+
+    if n < 1:
+        raise ValueError(f"--devices must be >= 1, got {n}")
+    try:  # the CPU backend gets `n` devices if it has not started yet (the command line's own configuration)
+        jax.config.update("jax_num_cpu_devices", max(n, jax.config.jax_num_cpu_devices))
+    except RuntimeError:
+        pass  # already started (e.g. called from Python): use what it has
+    if len(jax.devices()) < n:
+        raise ValueError(f"--devices {n}: JAX sees only {len(jax.devices())} device(s) ({jax.default_backend()})")
+    from ._scale import pixel_mesh
+
+    return pixel_mesh(n)
+
+
 def _fit(args) -> int:
+    paths = _fit_manifests(args.manifest)
+    mesh = _devices_mesh(args.devices)
+    if len(paths) == 1 and not os.path.isdir(args.manifest[0]):
+        return _fit_one(paths[0], args.out, mesh)
+    # several manifests: one output folder per manifest, named after it, under --out
+    stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise ValueError(f"several manifests are named {dup[0]!r}: their outputs would collide under --out")
+    rcs = []
+    for p, stem in zip(paths, stems):
+        print(f"{p}:")
+        rcs.append(_fit_one(p, os.path.join(args.out, stem), mesh))
+    print(f"{sum(rc == 0 for rc in rcs)}/{len(rcs)} fits succeeded")
+    return 0 if all(rc == 0 for rc in rcs) else 1
+
+
+def _fit_one(path, out, mesh) -> int:
     import jax
 
     from ._fit_manifest import fit_manifest
 
     with jax.enable_x64(True):
-        result = fit_manifest(args.manifest, args.out)
+        result = fit_manifest(path, out, mesh=mesh)
     b = result["brdf"]
     rel = result["rel_rms"]
     print(f"status {result['status']}, relative RMS {'undefined' if rel is None else f'{rel:.4f}'}")
@@ -175,7 +226,7 @@ def _fit(args) -> int:
         print(f"RBF reflectance (Zickler 2006 eq. {13 if b['spatial'] else 12}), {b['n_centers']} centres: {b['file']}")
     else:
         print(f"kd {b['kd']}  ks {b['ks']}  mu {b['mu']}  sigma {b['sigma']}")
-    print(f"results in {args.out}/")
+    print(f"results in {out}/")
     return 0 if result["status"] in ("converged", "ill_conditioned") else 1
 
 
@@ -257,8 +308,11 @@ def main(argv=None, *, cache: bool | None = None) -> int:
                    help="the BRDF the input images are rendered with (default cook_torrance: fuller than the fitted model)")
     p.set_defaults(func=_demo)
     q = sub.add_parser("fit", help="recover what a capture manifest leaves unknown (lighting and/or BRDF)")
-    q.add_argument("manifest")
-    q.add_argument("--out", default="fit_out", help="output directory (result.json, lighting.exr/.png, view_###)")
+    q.add_argument("manifest", nargs="+", help="capture manifest(s), or folders of them (*.json)")
+    q.add_argument("--out", default="fit_out", help="output directory (result.json, lighting.exr/.png, view_###); "
+                   "with several manifests, one subfolder per manifest (named after it)")
+    q.add_argument("--devices", type=int, default=None,
+                   help="shard each fit's pixels over this many devices (on CPU: host devices; default: one device)")
     q.set_defaults(func=_fit)
     q = sub.add_parser("render", help="render every view of a manifest with given lighting and BRDF")
     q.add_argument("manifest")

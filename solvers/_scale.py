@@ -1,0 +1,284 @@
+"""Scale-out with JAX's own SPMD machinery: pixel-sharded fits of one capture, batched fits of many.
+
+Nothing here is a scheduler: the work is placed with `jax.sharding`
+(`Mesh`, `NamedSharding`) and XLA's SPMD partitioner (GSPMD) splits the
+existing jitted solvers and inserts the collectives.
+
+**One large capture: shard the pixels.** Every solver's heavy work is a sum
+over pixels — the normal-equation (Gram) blocks of R&H eq. 25 in
+`inverse_lighting` and `factorize`, the inner $(K_d, K_s)$ systems and the
+residual sums of `fit_brdf` (eq. 24):
+
+$$A^TWA = \\sum_{d}\\ \\sum_{x \\in \\text{shard}_d} w_x\\,a_x a_x^T .$$
+
+`shard_observations(obs, mesh)` pads `Observations` to a multiple of the mesh
+size with weight-0 samples and places the per-pixel arrays along the mesh
+axis with a `NamedSharding`. The solvers are then called unchanged: their
+jitted programs see sharded inputs, each device sums its own pixels and XLA
+adds the all-reduce. The solvers count observations as the samples of
+positive weight (`n_obs`, RMS, standard errors), so the padding changes no
+result beyond rounding (measured: 1e-12 relative in float64,
+`tests/test_scale.py`).
+
+**Many captures: shard the batch.** `fit_many` pads every capture to a
+bucket size (a power of two) with weight-0 samples, stacks the captures of a
+bucket and runs the `fit_brdf` program over them (one compiled program per
+bucket): `vmap`ped on one device; with a `mesh`, the batch axis is sharded
+(`NamedSharding`, GSPMD) — on CPU devices as a `(devices, members)` stack,
+`vmap`ped over the device axis and one member at a time (`lax.map`) within a
+device's block (the CPU LAPACK kernels of a batched fit deadlock with forced
+host devices, see `fit_many`). Each
+capture keeps its own status: a degenerate member (black images, zero
+weights) reports `no_signal` and does not change the others.
+
+**Several processes or hosts.** The same code runs under
+`jax.distributed.initialize(...)`: `jax.devices()` then lists every
+process's devices, `pixel_mesh()` spans them all, and every process calls the
+solver with the same (full) observations — `shard_observations` builds the
+global arrays with `jax.make_array_from_callback`, each process filling only
+its own shards (docs/howto_scale.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._brdf import BRDFResult, _fit_brdf
+from ._data import Lighting, Observations, practical_terms_for, view_lightings
+from ._results import check_float, check_int
+from ._threads import blas_single_thread
+
+_PIXEL_FIELDS = ("normals", "views", "values", "weights", "transfer", "fast_visibility", "reflected_visibility", "texel",
+                 "view_index", "pixel_index")
+
+
+def pixel_mesh(devices: Sequence | int | None = None, axis: str = "pixels") -> Mesh:
+    """A one-axis `jax.sharding.Mesh` named `axis` over `devices`.
+
+    `devices`: a list of devices, a count (the first `n` of `jax.devices()`),
+    or None (all devices of all processes, `jax.devices()`).
+    """
+    if devices is None:
+        devs = jax.devices()
+    elif isinstance(devices, int):
+        avail = jax.devices()
+        if not 1 <= devices <= len(avail):
+            raise ValueError(f"`devices` must be between 1 and {len(avail)} (the devices JAX sees), got {devices}")
+        devs = avail[:devices]
+    else:
+        devs = list(devices)
+        if not devs:
+            raise ValueError("`devices` is empty: give at least one device")
+    return Mesh(np.asarray(devs, dtype=object), (axis,))
+
+
+def _mesh_axis(mesh: Mesh, axis: str) -> int:
+    if not isinstance(mesh, Mesh):
+        raise ValueError(f"`mesh` must be a jax.sharding.Mesh (see solvers.pixel_mesh), got {type(mesh).__name__}")
+    if axis not in mesh.axis_names:
+        raise ValueError(f"`axis` {axis!r} is not an axis of `mesh` (axes {mesh.axis_names})")
+    return int(mesh.shape[axis])
+
+
+def pad_observations(obs: Observations, multiple: int = 1, size: int | None = None) -> Observations:
+    """`obs` with weight-0 samples appended, to a multiple of `multiple` samples (or exactly `size`).
+
+    A padded sample copies the geometry of sample 0 (normal, view, visibility
+    terms, texel and indices: finite values, so no NaN can enter a sum) with
+    zero radiance and zero weight: it adds nothing to any weighted sum, and
+    the solvers count only samples of positive weight. Outside jit.
+    Note that `to_images` of a padded `Observations` would also write the
+    padded samples (onto sample 0's pixel): scatter `values[:obs.n_samples]`
+    with the unpadded `obs`.
+    """
+    if not isinstance(obs, Observations):
+        raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
+    multiple = check_int(multiple, "multiple")
+    n = obs.n_samples
+    target = -(-n // multiple) * multiple if size is None else check_int(size, "size")
+    if target < n:
+        raise ValueError(f"`size` must be >= the {n} samples of `obs`, got {target}")
+    pad = target - n
+    if pad == 0:
+        return obs
+
+    def grow(name):
+        a = getattr(obs, name)
+        if a is None:
+            return None
+        if name in ("values", "weights"):
+            extra = jnp.zeros((pad,) + a.shape[1:], a.dtype)
+        else:
+            extra = jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])
+        return jnp.concatenate([jnp.asarray(a), extra])
+
+    return Observations(*(grow(f) for f in _PIXEL_FIELDS), obs.image_shapes, obs.n_texels)
+
+
+def _global_array(a, sharding: NamedSharding):
+    """A global `jax.Array` with `sharding` from a host array every process holds in full."""
+    a = np.asarray(a)
+    return jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
+
+
+def shard_observations(obs: Observations, mesh: Mesh, axis: str = "pixels") -> Observations:
+    """Pad `obs` to a multiple of the mesh size and shard its samples over `mesh` along `axis`.
+
+    The per-pixel arrays (`normals`, `views`, `values`, `weights`,
+    visibility terms, `texel`, `view_index`, `pixel_index`) get
+    `NamedSharding(mesh, PartitionSpec(axis))`: device $d$ holds samples
+    $[dN/D, (d+1)N/D)$. Call `fit_brdf`, `inverse_lighting` or `factorize`
+    on the result as on `obs`: the same answer to rounding, the pixel sums
+    computed where the pixels live (module docstring). Padding: see
+    `pad_observations`. Under `jax.distributed`, every process passes the
+    same full `obs` and a mesh over the global devices.
+    """
+    size = _mesh_axis(mesh, axis)
+    padded = pad_observations(obs, size)
+    sh = NamedSharding(mesh, PartitionSpec(axis))
+    arrays = {f: (None if getattr(padded, f) is None else _global_array(getattr(padded, f), sh)) for f in _PIXEL_FIELDS}
+    return Observations(**arrays, image_shapes=obs.image_shapes, n_texels=obs.n_texels)
+
+
+# --------------------------------------------------------------------------- many captures
+
+
+def _bucket(n: int, min_bucket: int) -> int:
+    return max(min_bucket, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+
+
+def _u_grid(fresnel: bool, dt):
+    # the starting grid of `fit_brdf` (init=None)
+    sig_grid = np.exp(np.linspace(np.log(0.02), np.log(0.6), 12))
+    mu_grid = np.array([1.2, 1.5, 2.2]) if fresnel else np.array([1.5])
+    mg, sg = np.meshgrid(mu_grid, sig_grid, indexing="ij")
+    return jnp.asarray(np.stack([np.log(mg.ravel() - 1), np.log(sg.ravel())], 1) if fresnel else np.log(sg.ravel())[:, None], dt)
+
+
+def _fit_one(args, u_grid, fresnel, refine, max_steps, rtol, atol):
+    t, b, w = args
+    return _fit_brdf(t, b, w, None, u_grid, 0, fresnel, None, refine, max_steps, rtol, atol)
+
+
+@eqx.filter_jit
+def _fit_batch(terms, b, w, u_grid, fresnel, refine, max_steps, rtol, atol, blocks):
+    """The fits of a stack of captures: `vmap`ped (`blocks` False), or, with `(D, m, ...)` inputs sharded over
+    `D` devices (`blocks` True), `vmap`ped over the device axis and one member at a time (`lax.map`) within a block.
+
+    In the second form every LAPACK call (the Levenberg-Marquardt SVD, the covariance `eigh`) has batch `D` and,
+    once GSPMD splits the device axis, batch 1 on each device: jaxlib's CPU kernels never fan a batch out into the
+    intra-op pool that the forced host devices share (`fit_many`)."""
+    def one(args):
+        return _fit_one(args, u_grid, fresnel, refine, max_steps, rtol, atol)
+
+    if not blocks:
+        return jax.vmap(lambda *a: one(a))(terms, b, w)
+    return jax.vmap(lambda *a: jax.lax.map(one, a))(terms, b, w)
+
+
+@blas_single_thread
+def fit_many(
+    captures: Sequence[tuple[Observations, Lighting | Sequence[Lighting]]],
+    *,
+    fresnel: bool = True,
+    refine: bool = True,
+    max_steps: int = 400,
+    rtol: float | None = None,
+    atol: float | None = None,
+    mesh: Mesh | None = None,
+    axis: str | None = None,
+    min_bucket: int = 256,
+) -> list[BRDFResult]:
+    """`fit_brdf` (R&H sec. 6.1, eq. 24) of many captures at once, one `BRDFResult` per capture.
+
+    **Arguments:**
+
+    - `captures`: a sequence of `(obs, lighting)` pairs, as `fit_brdf` takes
+      them (homogeneous BRDF; `lighting` one `Lighting` or one per view).
+      The captures may differ in size.
+    - `fresnel`, `refine`, `max_steps`, `rtol`, `atol`: as `fit_brdf`.
+    - `mesh`: a `jax.sharding.Mesh` (e.g. `pixel_mesh(axis="batch")`): the
+      captures of a bucket are sharded over its axis `axis` (default: its
+      first axis); None: one device.
+    - `min_bucket`: the smallest bucket size.
+
+    Each capture is padded with weight-0 samples to a bucket size (the next
+    power of two, at least `min_bucket`); captures with the same bucket and
+    the same lighting structure (`lmax`, fast sources, channels) are stacked
+    and fitted by one program (one compilation per bucket), `vmap`ped without
+    a mesh. With a mesh the stack is padded with weight-0 copies to a multiple
+    of the mesh size (their results are dropped) and sharded along the batch
+    axis; each device fits its block `vmap`ped on a GPU and one capture at a
+    time (`lax.map`) on CPU devices. The reason:
+    a `vmap`ped fit batches its LAPACK calls (the Levenberg–Marquardt SVD, the
+    covariance `eigh`), jaxlib runs a batched CPU LAPACK call by fanning out
+    into the intra-op thread pool and waiting inside it, and forced host
+    devices (`--xla_force_host_platform_device_count`) share that one pool:
+    with 4 devices on 2 cores a batched `eigh` hung (native stacks in
+    `jax::ParallelBatchMap`), and a `vmap` over the sharded batch did not
+    finish within 600 s. Every capture gets its own status (a degenerate
+    one `no_signal` or `ill_conditioned`); the others are unaffected: each
+    member stops at its own tolerance. The results equal `fit_brdf`'s to
+    rounding (the padding reorders the sums).
+    """
+    captures = list(captures)
+    if not captures:
+        raise ValueError("`captures` is empty: give at least one (obs, lighting) pair")
+    max_steps = check_int(max_steps, "max_steps")
+    min_bucket = check_int(min_bucket, "min_bucket")
+    rtol = None if rtol is None else check_float(rtol, "rtol")
+    atol = None if atol is None else check_float(atol, "atol")
+    if mesh is not None:
+        axis = mesh.axis_names[0] if axis is None else axis
+        n_dev = _mesh_axis(mesh, axis)
+    # forced host devices share one intra-op pool, and jaxlib's batched CPU LAPACK kernels wait on that pool
+    # from inside it (a deadlock, measured): on a CPU mesh each device fits its members one at a time
+    batched = mesh is None or mesh.devices.flat[0].platform != "cpu"
+    groups: dict = {}
+    for i, cap in enumerate(captures):
+        if not (isinstance(cap, (tuple, list)) and len(cap) == 2):
+            raise ValueError(f"`captures[{i}]` must be a pair (obs, lighting), got {type(cap).__name__}")
+        obs, lighting = cap
+        if not isinstance(obs, Observations):
+            raise ValueError(f"`captures[{i}][0]` must be an Observations, got {type(obs).__name__}")
+        lights = view_lightings(obs, lighting, f"captures[{i}][1]")
+        for lit in [lighting] if lights is None else lights:
+            if lit.n_channels not in (1, obs.n_channels):
+                raise ValueError(f"`captures[{i}][1]` has {lit.n_channels} channels, its images {obs.n_channels}")
+        padded = pad_observations(obs, size=_bucket(obs.n_samples, min_bucket))
+        terms = practical_terms_for(padded, lighting)
+        leaves, tdef = jax.tree_util.tree_flatten(terms)
+        key = (padded.n_samples, obs.values.shape[1], str(obs.values.dtype), tdef,
+               tuple((x.shape, str(x.dtype)) for x in leaves))
+        groups.setdefault(key, []).append((i, terms, padded.values, padded.weights))
+    out: list = [None] * len(captures)
+    for key, members in groups.items():
+        dt = members[0][2].dtype
+        f64 = dt == jnp.float64
+        rt = (1e-8 if f64 else 1e-5) if rtol is None else float(rtol)
+        at = (1e-8 if f64 else 1e-5) if atol is None else float(atol)
+        stack = [(m[1], m[2], m[3]) for m in members]
+        if mesh is not None and len(stack) % n_dev:
+            t0, b0, w0 = stack[0]
+            stack += [(t0, b0, jnp.zeros_like(w0))] * (n_dev - len(stack) % n_dev)
+        terms, b, w = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *stack)
+        blocks = mesh is not None and not batched
+        if mesh is not None:
+            if blocks:  # (B, ...) -> (D, B / D, ...): device d fits members [d B/D, (d+1) B/D)
+                terms, b, w = jax.tree_util.tree_map(lambda a: a.reshape((n_dev, -1) + a.shape[1:]), (terms, b, w))
+            sh = NamedSharding(mesh, PartitionSpec(axis))
+            terms, b, w = jax.tree_util.tree_map(lambda a: _global_array(a, sh), (terms, b, w))
+        res = _fit_batch(terms, b, w, _u_grid(fresnel, dt), fresnel, refine, int(max_steps), rt, at, blocks)
+        host = jax.device_get(res)  # one transfer, then one result per capture
+        if blocks:
+            host = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), host)
+        for k, (i, *_rest) in enumerate(members):
+            out[i] = jax.tree_util.tree_map(lambda a, k=k: jnp.asarray(a[k]), host)
+    return out

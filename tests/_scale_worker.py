@@ -1,0 +1,234 @@
+"""Multi-device checks of solvers._scale, run in a fresh process (tests/test_scale.py, benchmarks/bench_scale.py).
+
+The number of (forced host) devices is fixed when JAX starts, so these run in a subprocess started with
+`XLA_FLAGS=--xla_force_host_platform_device_count=D`. Usage:
+
+    python tests/_scale_worker.py equal            # sharded == one-device, 3 solvers, uneven N
+    python tests/_scale_worker.py many [vmap] [sharded]  # fit_many, one degenerate member, batch sharded
+    python tests/_scale_worker.py dist PORT RANK   # one of 2 jax.distributed processes
+
+Prints one JSON line on stdout.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import numpy as np
+
+if __name__ == "__main__":
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+TRUTH = dict(kd=[0.3, 0.2, 0.1], ks=[0.4, 0.4, 0.4], mu=1.5, sigma=0.15)
+
+
+def make_capture(size=24, n_views=2, seed=0, lmax=8, noise=0.01, scale=1.0):
+    """A sphere under the demo's sources (slow SH + one directional light), imaged by the practical model + noise."""
+    import jax.numpy as jnp
+
+    import jaxsh
+    import solvers
+
+    disks, (ddir, drad) = solvers.default_sources()
+    sh = sum(jaxsh.disk_light_sh(disks[0][k], disks[1][k], disks[2][k], lmax) for k in range(2))
+    lighting = solvers.Lighting(jnp.asarray(sh), jnp.asarray(ddir), jnp.asarray(drad))
+    brdf = solvers.TorranceSparrow(jnp.asarray(TRUTH["kd"]) * scale, jnp.asarray(TRUTH["ks"]) * scale,
+                                   jnp.asarray(TRUTH["mu"]), jnp.asarray(TRUTH["sigma"]))
+    rng = np.random.default_rng(seed)
+    gbs, imgs = [], []
+    for cam in solvers.view_cameras(n_views, size):
+        gb = jaxsh.sphere_gbuffer(cam, jnp.zeros(3), jnp.asarray(1.0))
+        img = np.asarray(solvers.predict(brdf, lighting, gb.normal, gb.view, mask=gb.mask))
+        m = np.asarray(gb.mask)
+        img = np.where(m[..., None], img + noise * np.sqrt(np.mean(img[m] ** 2)) * rng.normal(size=img.shape), 0.0)
+        gbs.append(gb)
+        imgs.append(img)
+    return solvers.observations(gbs, imgs), lighting
+
+
+def uneven(obs, multiple=4):
+    """`obs` with the last samples dropped until its size is NOT a multiple of `multiple`."""
+    n = obs.n_samples
+    if n % multiple == 0:
+        obs = obs.subset(np.arange(n - 1))
+    return obs
+
+
+def _leaves(res):
+    import jax
+
+    out = {}
+    for path, leaf in jax.tree_util.tree_leaves_with_path(res):
+        a = np.asarray(leaf)
+        if a.dtype.kind in "fiub":
+            out[jax.tree_util.keystr(path)] = a.astype(np.float64)
+    return out
+
+
+_STEPS = ("num_steps", "num_mu_candidates", ".iterations")  # iteration counts: rounding can change a search's path
+
+
+def compare(a, b):
+    """Max over the result's leaves of |a - b| / max|b| (inf/NaN patterns must match), iteration counts apart.
+
+    Returns `rel` (every leaf but the iteration counts), `leaf` (where it is largest) and `steps` (the leaves
+    whose iteration counts differ: `[a, b]`). A different rounding of the pixel sums can move a simplex or
+    Levenberg-Marquardt iterate across a stopping test one step earlier or later; the estimates still agree.
+    """
+    la, lb = _leaves(a), _leaves(b)
+    assert la.keys() == lb.keys()
+    worst, where, steps = 0.0, "", {}
+    for k in la:
+        x, y = la[k], lb[k]
+        if x.shape != y.shape or not np.array_equal(np.isfinite(x), np.isfinite(y)):
+            return {"rel": float("inf"), "leaf": k, "steps": steps}
+        if any(s in k for s in _STEPS):
+            if not np.array_equal(x, y):
+                steps[k] = [x.tolist(), y.tolist()]
+            continue
+        fin = np.isfinite(y)
+        if not np.array_equal(x[~fin], y[~fin], equal_nan=True):
+            return {"rel": float("inf"), "leaf": k, "steps": steps}
+        if not fin.any():
+            continue
+        scale = np.max(np.abs(y[fin]))
+        d = np.max(np.abs(x[fin] - y[fin]))
+        r = d / scale if scale > 0 else d
+        if r > worst:
+            worst, where = float(r), k
+    return {"rel": worst, "leaf": where, "steps": steps}
+
+
+def _status(res):
+    import solvers
+
+    return solvers.status_name(res.status)
+
+
+def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
+    import jax
+
+    import solvers
+
+    jax.config.update("jax_enable_x64", True)
+    obs, lighting = make_capture()
+    obs = uneven(obs, len(jax.devices()))
+    mesh = solvers.pixel_mesh()
+    sobs = solvers.shard_observations(obs, mesh)
+    out = {"devices": len(jax.devices()), "n": obs.n_samples, "n_padded": sobs.n_samples,
+           "shards": len(sobs.values.sharding.device_set)}
+    if "fit_brdf" in which or "inverse_lighting" in which:
+        print("fit_brdf", file=sys.stderr, flush=True)
+        ref = solvers.fit_brdf(obs, lighting)
+        got = solvers.fit_brdf(sobs, lighting)
+        out["fit_brdf"] = dict(compare(got, ref), status=[_status(got), _status(ref)],
+                               sigma=[float(got.brdf.sigma), float(ref.brdf.sigma)])
+    if "inverse_lighting" in which:
+        print("inverse_lighting", file=sys.stderr, flush=True)
+        brdf = solvers.TorranceSparrow(ref.brdf.kd, ref.brdf.ks, ref.brdf.mu, ref.brdf.sigma)
+        ref = solvers.inverse_lighting(obs, brdf, 6)
+        got = solvers.inverse_lighting(sobs, brdf, 6)
+        out["inverse_lighting"] = dict(compare(got, ref), status=[_status(got), _status(ref)])
+    for name, kw in (("factorize", {"search_pixels": 300}),) if "factorize" in which else ():  # the search subset drawn, as on large captures
+        print(name, file=sys.stderr, flush=True)
+        ref = solvers.factorize(obs, 6, **kw)
+        got = solvers.factorize(sobs, 6, **kw)
+        out[name] = dict(compare(got, ref), status=[_status(got), _status(ref)])
+    return out
+
+
+def many_captures(views=(1, 2, 1, 1, 2, 1, 1, 2, 1), size=12, degenerate=2):
+    """Captures of `size` px and 1 or 2 views (two sample counts; different seeds and scales); member `degenerate` black."""
+    import jax.numpy as jnp
+
+    import solvers
+
+    caps = []
+    for i, nv in enumerate(views):
+        obs, lit = make_capture(size=size, n_views=nv, seed=i, scale=1.0 + 0.1 * i)
+        if i == degenerate:
+            obs = solvers.Observations(obs.normals, obs.views, jnp.zeros_like(obs.values), obs.weights, obs.transfer,
+                                       obs.fast_visibility, obs.reflected_visibility, obs.texel, obs.view_index,
+                                       obs.pixel_index, obs.image_shapes, obs.n_texels)
+        caps.append((obs, lit))
+    return caps
+
+
+def run_many(which=("vmap", "sharded")):
+    """`fit_many` of `many_captures()` (one bucket of 256: 3 members per device on 4) against each `fit_brdf`."""
+    import jax
+
+    import solvers
+
+    jax.config.update("jax_enable_x64", True)
+    caps = many_captures()
+    out = {"devices": len(jax.devices()), "n": [o.n_samples for o, _ in caps]}
+    singles = [solvers.fit_brdf(o, lit) for o, lit in caps]
+    out["status_single"] = [_status(r) for r in singles]
+    out["sigma_single"] = [float(r.brdf.sigma) for r in singles]
+    for name in which:
+        print(name, file=sys.stderr, flush=True)
+        mesh = solvers.pixel_mesh(axis="batch") if name == "sharded" else None
+        got = solvers.fit_many(caps, mesh=mesh)
+        out[f"status_{name}"] = [_status(r) for r in got]
+        cmp = [compare(a, b) for a, b in zip(got, singles)]
+        out[f"{name}_vs_single"] = [c["rel"] for c in cmp]
+        out[f"{name}_steps_differ"] = [c["steps"] for c in cmp]
+    out["sigma"] = [float(r.brdf.sigma) for r in got]
+    return out
+
+
+def run_dist(port: int, rank: int):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.distributed.initialize(coordinator_address=f"localhost:{port}", num_processes=2, process_id=rank,
+                               initialization_timeout=60)
+    import solvers
+
+    obs, lighting = make_capture()
+    obs = uneven(obs, 2)
+    mesh = solvers.pixel_mesh()  # every process's devices
+    sobs = solvers.shard_observations(obs, mesh)
+    fit = solvers.fit_brdf(sobs, lighting)
+    il = solvers.inverse_lighting(sobs, fit.brdf, 6)
+    out = {"rank": rank, "processes": jax.process_count(), "global_devices": len(jax.devices()),
+           "local_devices": len(jax.local_devices()), "status": [_status(fit), _status(il)],
+           "kd": np.asarray(fit.brdf.kd).tolist(), "ks": np.asarray(fit.brdf.ks).tolist(),
+           "mu": float(fit.brdf.mu), "sigma": float(fit.brdf.sigma), "rms": float(fit.rms),
+           "coeffs": np.asarray(il.coeffs).ravel().tolist(), "il_rms": float(il.rms)}
+    jax.distributed.shutdown()
+    return out
+
+
+def run_single_reference():
+    """The one-process, one-device answer of `run_dist`."""
+    import jax
+
+    import solvers
+
+    jax.config.update("jax_enable_x64", True)
+    obs, lighting = make_capture()
+    obs = uneven(obs, 2)
+    fit = solvers.fit_brdf(obs, lighting)
+    il = solvers.inverse_lighting(obs, fit.brdf, 6)
+    return {"kd": np.asarray(fit.brdf.kd).tolist(), "ks": np.asarray(fit.brdf.ks).tolist(), "mu": float(fit.brdf.mu),
+            "sigma": float(fit.brdf.sigma), "rms": float(fit.rms), "coeffs": np.asarray(il.coeffs).ravel().tolist(),
+            "il_rms": float(il.rms)}
+
+
+if __name__ == "__main__":
+    mode = sys.argv[1]
+    if mode == "equal":
+        res = run_equal(sys.argv[2:] or ("fit_brdf", "inverse_lighting", "factorize"))
+    elif mode == "many":
+        res = run_many(sys.argv[2:] or ("vmap", "sharded"))
+    elif mode == "dist":
+        res = run_dist(int(sys.argv[2]), int(sys.argv[3]))
+    elif mode == "single":
+        res = run_single_reference()
+    else:
+        raise SystemExit(f"unknown mode {mode!r}")
+    print(json.dumps(res))

@@ -1,0 +1,208 @@
+"""Scale-out (solvers._scale): pixel-sharded solvers, batched fits, several processes, the CLI's --devices.
+
+JAX fixes its device count when it starts, and this process already runs with one CPU device, so the
+multi-device checks run `tests/_scale_worker.py` in a subprocess with
+`XLA_FLAGS=--xla_force_host_platform_device_count=4` and assert on its JSON output. The reference of
+each sharded result is the same solver on one device (itself tested against closed forms elsewhere).
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import solvers
+from solvers.cli import main
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+WORKER = os.path.join(HERE, "_scale_worker.py")
+TOL = 1e-10  # float64, relative to each result leaf's largest entry
+# the iterative fits (simplex + Levenberg-Marquardt) agree only to their stopping tolerances (rtol = atol = 1e-8 in
+# float64): rounding of the reordered sums moves the iterates (measured up to 1.1e-8, also with equal step counts)
+STOP_TOL = 1e-7
+
+
+def _agrees(rel, steps_differ):
+    del steps_differ  # reported by the worker; equal step counts do not imply rounding-level agreement (measured)
+    return rel < STOP_TOL
+
+
+def _env(devices=None):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform_device_count" not in f]
+    if devices:
+        flags.append(f"--xla_force_host_platform_device_count={devices}")
+    env["XLA_FLAGS"] = " ".join(flags)
+    env["JAX_PLATFORMS"] = "cpu"
+    return env
+
+
+def _worker(*args, devices=4, timeout=600):
+    p = subprocess.run([sys.executable, WORKER, *map(str, args)], env=_env(devices), capture_output=True, text=True,
+                       timeout=timeout)
+    assert p.returncode == 0, p.stderr[-3000:]
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def test_sharded_solvers_equal_one_device_with_uneven_pixels():
+    r = _worker("equal", "fit_brdf", "inverse_lighting")
+    assert r["devices"] == 4 and r["shards"] == 4
+    assert r["n"] % 4 != 0 and r["n_padded"] % 4 == 0 and r["n_padded"] - r["n"] < 4
+    for name in ("fit_brdf", "inverse_lighting"):
+        got = r[name]
+        assert got["status"][0] == got["status"][1] == "converged", (name, got)
+        # every leaf (estimate, std errors, rms, n_obs, ...) but the iteration counts, which rounding may shift
+        assert _agrees(got["rel"], got["steps"]), (name, got)
+    assert r["inverse_lighting"]["rel"] < TOL  # a direct solve: rounding only
+    assert abs(r["fit_brdf"]["sigma"][1] - 0.15) < 0.01  # a real fit, not a trivial one
+
+
+@pytest.mark.skip(reason="too slow for the suite on CPU: not a hang (py-spy: compiling), it finished in ~17 min on "
+                  "4 forced host devices of a 2-core machine at load 12, both statuses converged, simplex step "
+                  "counts differ by rounding; the estimates' agreement is not measured yet (docs/howto_scale.md)")
+def test_sharded_factorize_equals_one_device():
+    r = _worker("equal", "factorize")
+    assert r["factorize"]["status"][0] == r["factorize"]["status"][1] == "converged"
+    assert _agrees(r["factorize"]["rel"], r["factorize"]["steps"]), r
+
+
+def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
+    r = _worker("many", "vmap", "sharded")
+    assert r["devices"] == 4 and len(set(r["n"])) == 2 and max(r["n"]) <= 256  # two sizes, one bucket
+    single = r["status_single"]
+    others = [k for k in range(len(single)) if k != 2]
+    assert single[2] == "no_signal"  # the all-zero member
+    assert [single[k] for k in others] == ["converged"] * len(others)
+    assert r["status_vmap"] == single and r["status_sharded"] == single
+    for k in others:  # the others are unaffected: each equals its own fit_brdf (the padding reorders the sums)
+        assert _agrees(r["vmap_vs_single"][k], r["vmap_steps_differ"][k]), r
+        assert _agrees(r["sharded_vs_single"][k], r["sharded_steps_differ"][k]), r
+        assert abs(r["sigma_single"][k] - 0.15) < 0.02
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_agree_with_one():
+    ref = _worker("single", devices=1)
+    port = _free_port()
+    procs = [subprocess.Popen([sys.executable, WORKER, "dist", str(port), str(rank)], env=_env(1),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for rank in range(2)]
+    outs = []
+    for p in procs:
+        try:
+            so, se = p.communicate(timeout=180)
+        except subprocess.TimeoutExpired:
+            for q in procs:
+                q.kill()
+            pytest.skip("the jax.distributed runtime did not finish within 180 s on localhost")
+        outs.append((p.returncode, so, se))
+    if any(rc != 0 for rc, _, _ in outs):
+        err = " ".join(se[-400:] for _, _, se in outs)
+        if any(k in err for k in ("initialize", "oordination", "DEADLINE", "UNAVAILABLE", "Gloo", "collectives")):
+            pytest.skip(f"the jax.distributed runtime could not start on localhost: {err[-300:]}")
+        raise AssertionError(err)
+    res = [json.loads(so.strip().splitlines()[-1]) for _, so, _ in outs]
+    for r in res:
+        assert r["processes"] == 2 and r["global_devices"] == 2 and r["local_devices"] == 1
+        assert r["status"] == ["converged", "converged"]
+        for key in ("kd", "ks", "mu", "sigma", "rms", "coeffs", "il_rms"):
+            a, b = np.asarray(r[key]), np.asarray(ref[key])
+            assert np.max(np.abs(a - b)) <= TOL * np.max(np.abs(b)), key
+    assert res[0]["coeffs"] == res[1]["coeffs"]  # both processes hold the same (replicated) answer
+
+
+def test_pad_observations_adds_weightless_finite_samples():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(5, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    obs = solvers.Observations(jnp.asarray(n), jnp.asarray(n), jnp.asarray(rng.random((5, 3))), jnp.ones(5), None, None,
+                               None, None, jnp.zeros(5, jnp.int32), jnp.arange(5), ((1, 5),))
+    p = solvers.pad_observations(obs, 4)
+    assert p.n_samples == 8
+    np.testing.assert_array_equal(np.asarray(p.weights), [1, 1, 1, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(np.asarray(p.values)[5:], 0.0)
+    np.testing.assert_array_equal(np.asarray(p.normals)[5:], np.broadcast_to(n[0], (3, 3)))  # a valid unit normal
+    assert solvers.pad_observations(obs, 5) is obs
+    with pytest.raises(ValueError, match="`size`"):
+        solvers.pad_observations(obs, size=3)
+    with pytest.raises(ValueError, match="`axis`"):
+        solvers.shard_observations(obs, solvers.pixel_mesh(1), axis="batch")
+    with pytest.raises(ValueError, match="`captures`"):
+        solvers.fit_many([])
+
+
+def test_solver_blas_limit_applies_only_on_cpu(monkeypatch):
+    from threadpoolctl import threadpool_info
+
+    from solvers._threads import blas_single_thread
+
+    def blas_threads():
+        return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
+
+    outside = blas_threads()
+    inner = blas_single_thread(blas_threads)
+    assert all(t == 1 for t in inner())  # CPU backend: OpenBLAS limited to one thread inside a solver
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert inner() == outside  # a GPU run leaves the host BLAS alone
+
+
+@pytest.mark.skipif(not any(d.platform == "gpu" for d in jax.devices()) if jax.default_backend() == "gpu" else True,
+                    reason="needs a CUDA device (pip install 'jaxsh[cuda]')")
+def test_gpu_sharded_fit_matches_cpu():  # pragma: no cover - runs only with a GPU
+    from tests._scale_worker import make_capture
+
+    obs, lighting = make_capture()
+    gpu = solvers.fit_brdf(solvers.shard_observations(obs, solvers.pixel_mesh()), lighting)
+    with jax.default_device(jax.devices("cpu")[0]):
+        cpu = solvers.fit_brdf(jax.device_put(obs, jax.devices("cpu")[0]), lighting)
+    assert solvers.status_name(gpu.status) == "converged"
+    np.testing.assert_allclose(float(gpu.brdf.sigma), float(cpu.brdf.sigma), rtol=1e-8)
+
+
+def test_cli_fits_several_manifests_on_several_devices(tmp_path):
+    from tests.test_cli import _fit_capture
+
+    paths = []
+    for k, sigma in enumerate((0.2, 0.3)):
+        d = tmp_path / f"c{k}"
+        d.mkdir()
+        p, m = _fit_capture(d, n_views=1, size=24, sigma=sigma)
+        m["brdf"] = None
+        q = tmp_path / "manifests" / f"cap{k}.json"
+        q.parent.mkdir(exist_ok=True)
+        for v in m["views"]:
+            v["image"] = str(d / v["image"])
+        m["lighting"]["envmap"] = str(d / "probe.exr")
+        q.write_text(json.dumps(m))
+        paths.append(q)
+    # one device, in this process: the reference of each fit (the single-manifest command, its layout unchanged)
+    for q in paths:
+        assert main(["fit", str(q), "--out", str(tmp_path / "one" / q.stem)]) == 0
+    # a folder of manifests on 4 (forced host) devices, in a fresh process
+    cmd = [sys.executable, "-m", "solvers.cli", "fit", str(tmp_path / "manifests"), "--devices", "4", "--out",
+           str(tmp_path / "four")]
+    p = subprocess.run(cmd, env=dict(_env(4), JAXSH_NO_CACHE="1"), capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "2/2 fits succeeded" in p.stdout
+    for q in paths:
+        one = json.loads((tmp_path / "one" / q.stem / "result.json").read_text())
+        four = json.loads((tmp_path / "four" / q.stem / "result.json").read_text())
+        assert four["status"] == one["status"] == "converged"
+        for key in ("kd", "ks", "mu", "sigma"):
+            a, b = np.asarray(four["brdf"][key]), np.asarray(one["brdf"][key])
+            assert np.max(np.abs(a - b)) <= TOL * np.max(np.abs(b)), key
+        assert abs(four["rms"] - one["rms"]) <= TOL * one["rms"]
+        assert (tmp_path / "four" / q.stem / "view_000.exr").exists()
+    assert main(["fit", str(paths[0]), "--devices", "8", "--out", str(tmp_path / "x")]) == 2  # this process: 1 device
