@@ -117,9 +117,9 @@ def test_two_processes_agree_with_one():
     for r in res:
         assert r["processes"] == 2 and r["global_devices"] == 2 and r["local_devices"] == 1
         assert r["status"] == ["converged", "converged"]
-        for key in ("kd", "ks", "mu", "sigma", "rms", "coeffs", "il_rms"):
+        for key in ("kd", "ks", "mu", "sigma", "rms", "coeffs", "il_rms"):  # all downstream of the iterative fit_brdf
             a, b = np.asarray(r[key]), np.asarray(ref[key])
-            assert np.max(np.abs(a - b)) <= TOL * np.max(np.abs(b)), key
+            assert np.max(np.abs(a - b)) <= STOP_TOL * np.max(np.abs(b)), key
     assert res[0]["coeffs"] == res[1]["coeffs"]  # both processes hold the same (replicated) answer
 
 
@@ -171,6 +171,7 @@ def test_gpu_sharded_fit_matches_cpu():  # pragma: no cover - runs only with a G
     np.testing.assert_allclose(float(gpu.brdf.sigma), float(cpu.brdf.sigma), rtol=1e-8)
 
 
+@pytest.mark.slow  # two fits here plus a 4-device process (~3 min on a loaded 2-core machine): make test-all
 def test_cli_fits_several_manifests_on_several_devices(tmp_path):
     from tests.test_cli import _fit_capture
 
@@ -202,7 +203,7 @@ def test_cli_fits_several_manifests_on_several_devices(tmp_path):
         assert four["status"] == one["status"] == "converged"
         for key in ("kd", "ks", "mu", "sigma"):
             a, b = np.asarray(four["brdf"][key]), np.asarray(one["brdf"][key])
-            assert np.max(np.abs(a - b)) <= TOL * np.max(np.abs(b)), key
-        assert abs(four["rms"] - one["rms"]) <= TOL * one["rms"]
+            assert np.max(np.abs(a - b)) <= STOP_TOL * np.max(np.abs(b)), key  # iterative fits: see STOP_TOL
+        assert abs(four["rms"] - one["rms"]) <= STOP_TOL * one["rms"]
         assert (tmp_path / "four" / q.stem / "view_000.exr").exists()
     assert main(["fit", str(paths[0]), "--devices", "8", "--out", str(tmp_path / "x")]) == 2  # this process: 1 device
