@@ -43,6 +43,7 @@ def _views(rng, k):
 # --------------------------------------------------------------------------- lighting per image
 
 
+@pytest.mark.slow  # ~3.5 % of the suite; per-view lighting is also covered by test_per_view_terms_are_each_views_own (make test-all)
 def test_per_view_lighting_equals_single_lighting(rng):
     """All views sharing one lighting: the per-view path equals the single-lighting path."""
     gbs = _views(rng, 3)

@@ -3,10 +3,12 @@
 import json
 
 import jax
+import pytest
 
 from solvers.cli import main
 
 
+@pytest.mark.slow  # the largest test (~7 % of the suite's CPU); `make demo` runs the demo end to end (make test-all)
 def test_demo_runs_small_and_writes_report(tmp_path):
     x64_before = jax.config.jax_enable_x64
     out = tmp_path / "out"
@@ -26,7 +28,6 @@ def test_demo_runs_small_and_writes_report(tmp_path):
 # ----------------------------------------------------------------------------- manifests and `jaxsh render`
 
 import numpy as np  # noqa: E402
-import pytest  # noqa: E402
 
 import jaxsh  # noqa: E402
 import jaxsh.io as jio  # noqa: E402

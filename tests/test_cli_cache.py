@@ -7,6 +7,7 @@ import sys
 
 import jax
 import numpy as np
+import pytest
 
 import jaxsh.io
 from solvers import cli
@@ -49,6 +50,7 @@ def test_command_line_fills_and_reuses_its_cache(tmp_path):
     assert a.max() > 0.05
 
 
+@pytest.mark.slow  # the cache itself is tested by test_command_line_fills_and_reuses_its_cache (make test-all)
 def test_cache_can_be_turned_off(tmp_path):
     p = _manifest(tmp_path)
     env = {**os.environ, "JAXSH_CACHE_DIR": str(tmp_path / "xla"), "JAXSH_NO_CACHE": "1"}

@@ -76,6 +76,7 @@ def test_torrance_sparrow_validation(args, match):
         jaxsh.TorranceSparrow(*args)
 
 
+@pytest.mark.slow  # ~2.5 % of the suite (compiles every form) (make test-all)
 def test_new_forms_equal_the_keyword_forms(rng):
     n = _pixels(rng)
     v = _pixels(rng)
