@@ -56,6 +56,8 @@ $\\mu$ from the stage-1 parabola.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -580,31 +582,33 @@ def _joint_rss(jt: _Joint, ks, sigma, mu, d, lmax):
 
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond):
-    column = _source_column(sub, mu, ks0, d, sigma0, lmax, chunk, rcond)
-    jt_sub = _joint_jit(sub, mu, lmax, chunk, rcond, column)
+    jt_sub = _joint_jit(sub, mu, lmax, chunk, rcond, None)  # the Gram blocks once, whatever the source's shadow
+    column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
+    if column is not None:
+        jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
     p, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
     jt = jt_sub if sub is obs else _joint_jit(obs, mu, lmax, chunk, rcond, column)
     return _refine_final(jt, p, mu, d, lmax, status, its)
 
 
-def _source_column(sub, mu, ks0, d, sigma0, lmax, chunk, rcond):
-    """The column of `fast_visibility` that is the found source's visibility (None: no such terms).
+def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
+    """The column of `fast_visibility` `fv` that is the found source's visibility (None: no such terms).
 
     One column: that one. Several (candidate sources, e.g. the lights of the capture): the one whose
-    profiled RSS at the stage-1 $(K_s, \\sigma)$ is smallest, i.e. whose shadow the data show.
+    profiled RSS at the stage-1 $(K_s, \\sigma)$ is smallest, i.e. whose shadow the data show. `jt`: the
+    joint system without a shadow (its Gram blocks are shared by every candidate).
     """
-    fv = sub.fast_visibility
     if fv is None or fv.shape[1] == 0:
         return None
     if fv.shape[1] == 1:
         return 0
-    rss = [float(_column_rss(sub, mu, ks0, d, sigma0, lmax, chunk, rcond, jnp.asarray(j))) for j in range(fv.shape[1])]
+    rss = [float(_column_rss(jt, fv[:, j], mu, ks0, d, sigma0, lmax)) for j in range(fv.shape[1])]
     return int(np.nanargmin(rss)) if np.any(np.isfinite(rss)) else 0
 
 
 @eqx.filter_jit
-def _column_rss(o, mu, ks, d, sigma, lmax, chunk, rcond, column):
-    return jnp.sum(_joint_rss(_joint(o, mu, lmax, chunk, rcond, column), ks, sigma, mu, d, lmax)[0])
+def _column_rss(jt, fvis, mu, ks, d, sigma, lmax):
+    return jnp.sum(_joint_rss(dataclasses.replace(jt, fvis=fvis), ks, sigma, mu, d, lmax)[0])
 
 
 @eqx.filter_jit
