@@ -17,10 +17,12 @@ def _demo(args) -> int:
 
 
 _MATERIALS = [
-    # R&H 2001 fig. 11 (known-lighting values, K_d + K_s = 1): teflon, delrin, painted
+    # R&H 2001 fig. 11 (known-lighting values): teflon, delrin, painted, and bronze (a metal: coloured K_s,
+    # no Fresnel term, mu None; fitted with fresnel=False as in the paper)
     ("teflon", [0.89, 0.89, 0.89], [0.11, 0.11, 0.11], 1.78, 0.12),
     ("delrin", [0.87, 0.87, 0.87], [0.13, 0.13, 0.13], 1.44, 0.10),
     ("painted", [0.62, 0.71, 0.62], [0.29, 0.29, 0.29], 1.38, 0.15),
+    ("bronze", [0.15, 0.08, 0.05], [0.85, 0.68, 0.59], None, 0.12),
 ]
 
 
@@ -45,20 +47,22 @@ def _demo_x64(args) -> int:
     images = {}
     ok = True
     for k, (name, kd, ks, mu, sigma) in enumerate(_MATERIALS[: args.materials]):
-        truth = solvers.TorranceSparrow(jnp.asarray(kd), jnp.asarray(ks), jnp.asarray(mu), jnp.asarray(sigma))
+        truth = solvers.TorranceSparrow(jnp.asarray(kd), jnp.asarray(ks), None if mu is None else jnp.asarray(mu),
+                                        jnp.asarray(sigma))
+        fresnel = mu is not None
         t = time.perf_counter()
         cap = solvers.sphere_capture(truth, size=args.size, n_views=args.views, noise=args.noise, seed=k,
                                      brdf_model=args.brdf_model)
         t_render = time.perf_counter() - t
         obs = solvers.observations(cap.gbuffers, cap.images)
         t = time.perf_counter()
-        known = solvers.fit_brdf(obs, cap.lighting)
+        known = solvers.fit_brdf(obs, cap.lighting, fresnel=fresnel)
         t_known = time.perf_counter() - t
         t = time.perf_counter()
         il = solvers.inverse_lighting(obs, truth, args.lmax)
         t_il = time.perf_counter() - t
         t = time.perf_counter()
-        fac = solvers.factorize(obs, args.lmax)
+        fac = solvers.factorize(obs, args.lmax, fresnel=fresnel)
         t_fac = time.perf_counter() - t
         tl = np.asarray(jaxsh.filter_lighting_microfacet(cap.lighting.total_sh(args.lmax), truth.sigma))
         corr_il = min(np.corrcoef(np.asarray(il.coeffs)[:9, c], tl[:9, c])[0, 1] for c in range(3))
@@ -100,7 +104,7 @@ def _demo_x64(args) -> int:
         print(f"{name}: render {t_render:.1f} s | known-lighting fit {t_known:.2f} s | inverse lighting {t_il:.2f} s "
               f"| factorization {t_fac:.2f} s")
         print(f"  {'':8} {'truth':>22} {'known lighting':>22} {'unknown lighting':>22}")
-        fmt = lambda a: " ".join(f"{x:.3f}" for x in np.atleast_1d(np.asarray(a)))  # noqa: E731
+        fmt = lambda a: "none (F = 1)" if a is None else " ".join(f"{x:.3f}" for x in np.atleast_1d(np.asarray(a)))  # noqa: E731
         for pname in ("kd", "ks", "mu", "sigma"):
             print(f"  {pname:8} {fmt(getattr(truth, pname)):>22} {fmt(getattr(known.brdf, pname)):>22} "
                   f"{fmt(getattr(fac.brdf, pname)):>22}")
@@ -303,7 +307,8 @@ def main(argv=None, *, cache: bool | None = None) -> int:
     p.add_argument("--views", type=int, default=3, help="number of views (default 3)")
     p.add_argument("--noise", type=float, default=0.01, help="noise, as a fraction of the image RMS (default 0.01)")
     p.add_argument("--lmax", type=int, default=12, help="lighting cutoff l* (default 12)")
-    p.add_argument("--materials", type=int, default=3, help="how many of the fig. 11 materials (1-3)")
+    p.add_argument("--materials", type=int, default=len(_MATERIALS),
+                   help=f"how many of the fig. 11 materials, in the order {', '.join(m[0] for m in _MATERIALS)} (1-{len(_MATERIALS)})")
     p.add_argument("--brdf-model", default="cook_torrance", choices=["cook_torrance", "ggx", "torrance_sparrow"],
                    help="the BRDF the input images are rendered with (default cook_torrance: fuller than the fitted model)")
     p.set_defaults(func=_demo)
