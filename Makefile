@@ -21,13 +21,10 @@ install-tests: $(BIN)/python
 demo: install
 	$(BIN)/jaxsh demo --out demo_out --json demo_out/report.json
 
-# The CI suite: everything but tests marked slow; notebooks run small. The suite is dominated by XLA
-# compilation, so it runs with XLA's optimization passes off (JAX_DISABLE_MOST_OPTIMIZATIONS: the same
-# semantics, rounding may differ; 35 % less CPU). Files are kept on one worker each (--dist loadfile), so a
-# module's fixtures and compiled programs are built once. `make test-all`: every test, fully optimized.
+# The CI suite: everything but tests marked slow; notebooks run small. Files are kept on one worker each
+# (--dist loadfile), so a module's fixtures and compiled programs are built once, not once per worker.
 test: install-tests
-	JAXSH_NOTEBOOK_SMALL=1 JAX_DISABLE_MOST_OPTIMIZATIONS=1 $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile \
-		--nbmake $(PYTEST_ARGS) tests notebooks
+	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile --nbmake $(PYTEST_ARGS) tests notebooks
 
 test-all: install-tests
 	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake tests notebooks
