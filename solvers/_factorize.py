@@ -68,7 +68,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
-from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_dual_region
+from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import Gram, accumulate_gram, eq25_rows, inverse_spd_unrolled, pinv_psd, solve_spd_unrolled
 from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
@@ -210,12 +210,7 @@ def _golden_ks(bl: _Blocks, filt, rtol: float, atol: float, max_steps: int):
         def rss(ks, _):
             return _schur_rss(bl1, 1.0 - ks[None], ks[None], filt)[0][0]
 
-        dt = g.bb.dtype
-        sol = optx.minimise(rss, optx.GoldenSearch(rtol=rtol, atol=atol), jnp.asarray(0.5, dt),
-                            options=dict(lower=1e-6, upper=1.0), max_steps=max_steps, throw=False)
-        ks = jnp.clip(sol.value, 1e-6, 1.0)
-        f, f_hi = rss(ks, None), rss(jnp.ones((), dt), None)
-        return jnp.where(f_hi < f, 1.0, ks), jnp.minimum(f_hi, f), sol.stats["num_steps"]
+        return golden_ks_unit(rss, g.bb.dtype, rtol, atol, max_steps)
 
     return jax.vmap(one, in_axes=(_channel_blocks(bl),))(bl)
 
@@ -264,14 +259,7 @@ def find_source(
         raise ValueError(f"`coeffs` must have shape (n_coeffs, C) with lmax >= 1, got {tuple(coeffs.shape)}")
     dt = coeffs.dtype
     h = int(height)
-    reg = None
-    if region is not None:
-        rdir = np.asarray(region[0], np.float64)
-        rdir = rdir / np.linalg.norm(rdir)
-        if not np.any(np.asarray(jaxsh.latlong_directions(h, 2 * h)) @ rdir >= np.cos(float(region[1]))):
-            raise ValueError("`region` contains no lat-long sample; enlarge its radius")
-        reg = (jnp.asarray(rdir, dt), jnp.asarray(region[1], dt))
-    return _find_source(coeffs, reg, h, lmax)
+    return _find_source(coeffs, check_region(region, h, dt), h, lmax)
 
 
 @eqx.filter_jit
@@ -547,7 +535,7 @@ def factorize(
     if dual is None:
         src = find_source.__wrapped__(filtered, region=region)
     else:
-        src = _source_in_image(dual.image, dual.covered, check_dual_region(region, 2 * dual_height, dt))
+        src = _source_in_image(dual.image, dual.covered, check_region(region, 2 * dual_height, dt))
     stats["num_steps_bisection"] = src.num_steps
     if not refine:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)

@@ -102,16 +102,19 @@ def _golden_ks_dual(mo: _DualMoments, rtol: float, atol: float, max_steps: int):
     dt = mo.g.dtype
 
     def one(c):
-        def rss(ks, _):
-            return _dual_rss_one(mo, c, ks)[0]
-
-        sol = optx.minimise(rss, optx.GoldenSearch(rtol=rtol, atol=atol), jnp.asarray(0.5, dt),
-                            options=dict(lower=1e-6, upper=1.0), max_steps=max_steps, throw=False)
-        ks = jnp.clip(sol.value, 1e-6, 1.0)
-        f, f_hi = rss(ks, None), rss(jnp.ones((), dt), None)
-        return jnp.where(f_hi < f, 1.0, ks), jnp.minimum(f_hi, f), sol.stats["num_steps"]
+        return golden_ks_unit(lambda ks, _: _dual_rss_one(mo, c, ks)[0], dt, rtol, atol, max_steps)
 
     return jax.vmap(one)(jnp.arange(mo.bb.shape[0]))
+
+
+def golden_ks_unit(rss, dt, rtol: float, atol: float, max_steps: int):
+    """The $K_s \\in [10^{-6}, 1]$ minimizing the scalar `rss(ks, None)`: `optimistix.GoldenSearch`, and the
+    end point $K_s = 1$ (a pure mirror) checked as well. Returns `ks`, `rss(ks)`, `num_steps`."""
+    sol = optx.minimise(rss, optx.GoldenSearch(rtol=rtol, atol=atol), jnp.asarray(0.5, dt),
+                        options=dict(lower=1e-6, upper=1.0), max_steps=max_steps, throw=False)
+    ks = jnp.clip(sol.value, 1e-6, 1.0)
+    f, f_hi = rss(ks, None), rss(jnp.ones((), dt), None)
+    return jnp.where(f_hi < f, 1.0, ks), jnp.minimum(f_hi, f), sol.stats["num_steps"]
 
 
 @eqx.filter_jit
@@ -134,7 +137,7 @@ def _stage1_final_dual(obs: Observations, mu, height: int):
     return ks, steps
 
 
-def check_dual_region(region, height: int, dt):
+def check_region(region, height: int, dt):
     """The user's `region` as jnp arrays, checked to contain a texel of the `height` grid (or None)."""
     if region is None:
         return None
