@@ -36,7 +36,7 @@ from ._checks import check_dirs, check_positive_int
 from ._indexing import sh_degrees
 from ._model import Lighting, TorranceSparrow
 from ._reflectance import _safe_sqrt, _theta_h_sq, fresnel_normalized
-from ._sh import _real_sh_flat, _unit_vectors
+from ._sh import _band_sums_scan, _real_sh_flat, _unit_vectors, _z_features
 from ._spectra import lambertian_spectrum, microfacet_spectrum
 from ._transforms import _synthesize
 
@@ -68,7 +68,10 @@ class PracticalTerms(eqx.Module):
     - `irradiance`: `(N, C)` $E$: the 9-term (or transfer-vector) irradiance of
       the slow lighting plus the shadowed cosine of the fast sources (exact,
       or their 9-term irradiance with `exact_fast_diffuse=False`).
-    - `bands`: `(N, lmax+1, C)` $P_l(R)$, reflected-ray visibility included.
+    - `bands`: `(N, C, lmax+1)` $P_l(R)$, reflected-ray visibility included
+      (the band axis last and contiguous: $L_{slow}(R) = $ `bands @ filter`
+      is then a matrix-vector product, ~10× faster on XLA:CPU than a
+      contraction over a middle axis; `benchmarks/bench_inverse.py`).
     - `theta_h`: `(N, J)` half-angle of each fast source (`jaxsh.half_angle`).
     - `fast_weight`: `(N, J)` $V_j\\,[\\cos\\theta_{i,j} > 0]$.
     - `fast_energy`: `(J, C)` $L_j$.
@@ -82,14 +85,14 @@ class PracticalTerms(eqx.Module):
     visible: Bool[Array, " N"]
     cos_o: Float[Array, " N"]
     irradiance: Float[Array, "N C"]
-    bands: Float[Array, "N L C"]
+    bands: Float[Array, "N C L"]
     theta_h: Float[Array, "N J"]
     fast_weight: Float[Array, "N J"]
     fast_energy: Float[Array, "J C"]
 
     @property
     def lmax(self) -> int:
-        return self.bands.shape[1] - 1
+        return self.bands.shape[2] - 1
 
     def fresnel(self, mu):
         """$F(\\mu, \\theta_o)$ normalized to 1 at normal incidence, `(N,)`."""
@@ -102,7 +105,7 @@ class PracticalTerms(eqx.Module):
         dt = self.cos_o.dtype
         sigma = jnp.asarray(sigma, dt)
         filt = microfacet_spectrum(sigma, self.lmax)  # (L+1,), eq. 20
-        slow = jnp.einsum("nlc,l->nc", self.bands, filt)  # eq. 22
+        slow = self.bands @ filt  # eq. 22: (N, C, L) @ (L,)
         tj = jnp.exp(-((self.theta_h / sigma) ** 2)) / (jnp.pi * sigma**2) * self.fast_weight  # eq. 23
         fast = (tj @ self.fast_energy) / (4 * self.cos_o)[:, None]
         f = self.fresnel(mu)[:, None]
@@ -136,39 +139,25 @@ class PracticalTerms(eqx.Module):
         return self.components(kd, ks, mu, sigma).total
 
 
-def _band_groups(lmax: int):
-    """Consecutive bands `[a, b)` projected by one matrix product each in `_sh_bands`.
-
-    One product per band would be `lmax + 1` small dots (each its own XLA kernel: ~2 s of compile
-    time at lmax 31); one product per group of `g` bands costs `g` times the multiply-adds of the
-    band sums (zeros of the block matrix) but compiles in a fraction of it. `g` keeps about 1024
-    coefficients per group: one product up to lmax 31.
-    """
-    g = max(1, min(32, 1024 // (lmax + 1)))
-    return [(a, min(a + g, lmax + 1)) for a in range(0, lmax + 1, g)]
-
-
 def _sh_bands(dirs, coeffs, lmax: int, chunk: int):
-    """$P_l = \\sum_m c_{lm} Y_{lm}$ per band at (N, 3) unit directions: (N, lmax+1, C), in pixel chunks."""
-    c = coeffs.shape[1]
-    mats = []
-    for a, b in _band_groups(lmax):
-        # (b² - a², (b - a) C) block matrix: row l²+l+m holds c_{lm} in the columns of band l
-        deg = sh_degrees(b - 1)[a * a :]
-        sel = (deg[:, None] == np.arange(a, b)[None, :]).astype(np.float64)
-        mats.append((coeffs[a * a : b * b, None, :] * jnp.asarray(sel, coeffs.dtype)[:, :, None]).reshape(b * b - a * a, (b - a) * c))
+    """$P_l = \\sum_m c_{lm} Y_{lm}$ per band at (N, 3) unit directions: (N, C, lmax+1), in pixel chunks.
 
-    def one(x):
-        y = _real_sh_flat(x, lmax)  # (n, nc)
-        parts = [(y[:, a * a : b * b] @ m).reshape(y.shape[0], b - a, c) for (a, b), m in zip(_band_groups(lmax), mats)]
-        return parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis=1)
+    The SH recurrence with each band contracted against the coefficients as it is made
+    (`jaxsh._sh._band_sums_scan`): $O(N\\,(l_{max}+1)^2\\,C)$ multiply-adds, one small scan body to compile.
+    """
+    feat = _z_features(dirs)
+
+    def one(f):
+        z = tuple(f[:, i] for i in range(2, f.shape[1]))
+        return _band_sums_scan(f[:, 0], f[:, 1], z[0] if len(z) == 1 else z, coeffs, lmax).transpose(2, 1, 0)
 
     npx = dirs.shape[0]
     if npx <= chunk:
-        return one(dirs)
+        return one(feat)
     pad = (-npx) % chunk
-    d = jnp.pad(dirs, ((0, pad), (0, 0))).at[npx:, 2].set(1.0)  # padding rows: +z, a valid direction
-    out = jax.lax.map(one, d.reshape(-1, chunk, 3))
+    f = jnp.pad(feat, ((0, pad), (0, 0)))
+    f = f.at[npx:, 2].set(1.0)  # padding rows: +z (float64 features) or sigma = +1, w = 0 (below float64): valid
+    out = jax.lax.map(one, f.reshape(-1, chunk, f.shape[1]))
     return out.reshape((-1,) + out.shape[2:])[:npx]
 
 
@@ -318,7 +307,7 @@ def _eq24_terms(
 
     `table=(flat, rows)` (a `_slow_table` of the slow lighting already filtered
     for σ) replaces the per-band SH evaluation at the mirror direction by its
-    interpolation: `bands` is then `(N, 1, C)`, the filtered $L_{slow}(R)$
+    interpolation: `bands` is then `(N, C, 1)`, the filtered $L_{slow}(R)$
     itself, whose filter $e^{-(\\sigma\\cdot 0)^2} = 1$ in `components` leaves it as is.
     """
     dt = n.dtype
@@ -345,11 +334,11 @@ def _eq24_terms(
         if table is None:
             bands = _sh_bands(r, slow_sh, lmax, chunk)
         else:
-            bands = _table_lookup(table[0], table[1], r)[:, None, :]
+            bands = _table_lookup(table[0], table[1], r)[:, :, None]
         if rvis is not None:
             bands = bands * rvis[:, None, None]
     else:
-        bands = jnp.zeros((npx, 1, c), dt)
+        bands = jnp.zeros((npx, c, 1), dt)
     if fdir is not None:
         # Fast sources: eq. 23 (half angles) and their diffuse term.
         d = _unit_vectors(fdir)

@@ -125,14 +125,10 @@ def _basis_unrolled(x, y, z, lmax: int):
     return out
 
 
-def _basis_scan(x, y, z, lmax: int):
-    """Real SH with a `lax.scan` over l (vectorized over m); shape (n_coeffs, N).
-
-    `z` is the z coordinate or the tuple of z features of `_z_features`.
-    """
+def _scan_parts(x, y, z, lmax: int):
+    """What `_basis_scan` and `_band_sums_scan` share: the z features `(1 or 2, 1, N)`, the rows
+    $\\cos m\\phi, \\sin m\\phi$ (times $\\sin^m\\theta$) `(lmax+1, N)` each, and the step of the recurrence over l."""
     zf = tuple(v[None, :] for v in z) if isinstance(z, tuple) else (z[None, :],)
-    dtype = x.dtype
-    a, b, d = (jnp.asarray(t, dtype=dtype) for t in _recurrence_tables(lmax))
     n = lmax + 1
 
     def cs_step(carry, _):
@@ -141,8 +137,6 @@ def _basis_scan(x, y, z, lmax: int):
         return nxt, carry
 
     _, (cos_m, sin_m) = jax.lax.scan(cs_step, (jnp.ones_like(x), jnp.zeros_like(x)), None, length=n)
-
-    rho, beta = (jnp.asarray(t, dtype=dtype) for t in _delta_tables(lmax))
 
     def q_step(carry, tables):
         q1, q2 = carry  # q_{l-1}, then q_{l-2} or Δ_{l-1} (difference form): (n, N)
@@ -156,12 +150,53 @@ def _basis_scan(x, y, z, lmax: int):
         ql = rl * (sig * q1) + delta + dl
         return (ql, delta), ql
 
+    dtype = x.dtype
+    a, b, d = (jnp.asarray(t, dtype=dtype) for t in _recurrence_tables(lmax))
+    rho, beta = (jnp.asarray(t, dtype=dtype) for t in _delta_tables(lmax))
     zeros = jnp.zeros((n,) + x.shape, dtype)
-    _, q = jax.lax.scan(q_step, (zeros, zeros), (a, b, d, rho, beta))  # (l, m, N)
+    return cos_m, sin_m, q_step, (a, b, d, rho, beta), (zeros, zeros)
+
+
+def _basis_scan(x, y, z, lmax: int):
+    """Real SH with a `lax.scan` over l (vectorized over m); shape (n_coeffs, N).
+
+    `z` is the z coordinate or the tuple of z features of `_z_features`.
+    """
+    cos_m, sin_m, q_step, tables, init = _scan_parts(x, y, z, lmax)
+    _, q = jax.lax.scan(q_step, init, tables)  # (l, m, N)
     ls = sh_degrees(lmax)
     ms = sh_orders(lmax)
     trig = jnp.concatenate([sin_m[1:][::-1], cos_m], axis=0)  # rows m = -lmax..lmax
     return q[ls, np.abs(ms)] * trig[ms + lmax]
+
+
+def _band_sums_scan(x, y, z, coeffs, lmax: int):
+    """Band sums $P_l = \\sum_m c_{lm} Y_{lm}$ of `coeffs` `(n_coeffs, C)` at the points: `(lmax+1, C, N)`.
+
+    The recurrence of `_basis_scan`, with each band contracted as soon as it is made:
+    $P_l = \\sum_{m \\ge 0} \\bar q_l^m\\,(c_{l,m}\\cos_m + c_{l,-m}\\sin_m)$, one `(C, 2(lmax+1)) @ (2(lmax+1), N)`
+    product per l. $O(N\\,l_{max}^2\\,C)$ work like the basis, but the `(N, n_coeffs)` basis is never stored
+    and no multiply-add is spent on other bands' zeros (the block-matrix route of `jaxsh._practical`
+    spent $l_{max}/2$ times more).
+    """
+    cos_m, sin_m, q_step, tables, init = _scan_parts(x, y, z, lmax)
+    n = lmax + 1
+    l_, m_ = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    ok = m_ <= l_
+    i_cos = np.where(ok, l_ * l_ + l_ + m_, 0)
+    i_sin = np.where(ok & (m_ > 0), l_ * l_ + l_ - m_, 0)
+    c_cos = jnp.where(ok[:, :, None], coeffs[i_cos], 0.0)  # (l, m, C)
+    c_sin = jnp.where((ok & (m_ > 0))[:, :, None], coeffs[i_sin], 0.0)
+    c_lm = jnp.concatenate([c_cos, c_sin], axis=1).transpose(0, 2, 1)  # (l, C, 2n)
+    trig = jnp.concatenate([cos_m, sin_m], axis=0)  # (2n, N)
+
+    def step(carry, xs):
+        tab, cl = xs
+        carry, ql = q_step(carry, tab)
+        return carry, cl @ (jnp.concatenate([ql, ql], axis=0) * trig)
+
+    _, p = jax.lax.scan(step, init, (tables, c_lm))
+    return p
 
 
 @functools.lru_cache(maxsize=None)

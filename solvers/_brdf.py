@@ -111,8 +111,11 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
 
 
 def _model(terms, kd, ks, mu, sigma, texel):
-    D = terms.diffuse_unit()
-    S = terms.specular_unit(mu, sigma)
+    return _combine(terms.diffuse_unit(), terms.specular_unit(mu, sigma), kd, ks, texel)
+
+
+def _combine(D, S, kd, ks, texel):
+    """$K_d D + K_s S$ with homogeneous `(C,)` or per-texel `(T, C)` parameters: `(N, C)`."""
     if kd.ndim == 2:
         kd, ks = kd[texel], ks[texel]
     else:
@@ -236,12 +239,13 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     nobs = jnp.sum((w > 0).astype(dt)) * b.shape[1]
     sw = jnp.sqrt(w)[:, None]
 
+    D = terms.diffuse_unit()
+
     def profiled(u):
         mu, sigma = _to_natural(u, fresnel)
-        D = terms.diffuse_unit()
-        S = terms.specular_unit(mu, sigma)
+        S = terms.specular_unit(mu, sigma)  # once per evaluation: the inner solve and the residual share it
         kd, ks, bad = _inner(D, S, b, w, texel, n_texels, textured)
-        r = sw * (_model(terms, kd, ks, mu, sigma, texel) - b)
+        r = sw * (_combine(D, S, kd, ks, texel) - b)
         return r, (kd, ks, bad)
 
     # The optimizers run in the default float dtype (optimistix's simplex mixes its own scalars into the

@@ -304,8 +304,8 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 8192) -> jaxsh
         t = _terms_one(sub, lit, chunk)
         n = idx.size
         irr = jnp.broadcast_to(t.irradiance, (n, c))
-        bands = jnp.broadcast_to(t.bands, (n, t.bands.shape[1], c))
-        bands = jnp.pad(bands, ((0, 0), (0, lmax + 1 - bands.shape[1]), (0, 0)))
+        bands = jnp.broadcast_to(t.bands, (n, c, t.bands.shape[2]))
+        bands = jnp.pad(bands, ((0, 0), (0, 0), (0, lmax + 1 - bands.shape[2])))
         en = jnp.broadcast_to(t.fast_energy, (j, c))
         if fold:  # column j*c + c': theta_h_j, V_j L_{j,c'}
             th = jnp.repeat(t.theta_h, c, axis=1)

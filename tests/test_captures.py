@@ -87,7 +87,7 @@ def test_per_view_terms_are_each_views_own(rng):
             want = jaxsh.practical_terms(obs.normals[sel], obs.views[sel], lit)(brdf)
             np.testing.assert_allclose(got[sel], np.broadcast_to(np.asarray(want), got[sel].shape), rtol=0, atol=1e-12)
     # memory: O(pixels), the columns do not grow with the number of views
-    assert terms.theta_h.shape == (obs.n_samples, 3 * 3) and terms.bands.shape == (obs.n_samples, 6, 3)
+    assert terms.theta_h.shape == (obs.n_samples, 3 * 3) and terms.bands.shape == (obs.n_samples, 3, 6)
     with pytest.raises(ValueError, match="`lighting` must have one Lighting per view"):
         solvers.fit_brdf(obs, lights[:2])
     with pytest.raises(ValueError, match=r"`lighting\[1\]`"):
