@@ -121,8 +121,9 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
            "shards": len(sobs.values.sharding.device_set)}
     if "fit_brdf" in which or "inverse_lighting" in which:
         print("fit_brdf", file=sys.stderr, flush=True)
-        ref = solvers.fit_brdf(obs, lighting)
-        got = solvers.fit_brdf(sobs, lighting)
+        # the search subset drawn (`search_pixels`), as on large captures
+        ref = solvers.fit_brdf(obs, lighting, search_pixels=300)
+        got = solvers.fit_brdf(sobs, lighting, search_pixels=300)
         out["fit_brdf"] = dict(compare(got, ref), status=[_status(got), _status(ref)],
                                sigma=[float(got.brdf.sigma), float(ref.brdf.sigma)])
     if "inverse_lighting" in which:
@@ -192,7 +193,7 @@ def run_dist(port: int, rank: int):
     obs = uneven(obs, 2)
     mesh = solvers.pixel_mesh()  # every process's devices
     sobs = solvers.shard_observations(obs, mesh)
-    fit = solvers.fit_brdf(sobs, lighting)
+    fit = solvers.fit_brdf(sobs, lighting, search_pixels=300)  # the search subset drawn across processes
     il = solvers.inverse_lighting(sobs, fit.brdf, 6)
     out = {"rank": rank, "processes": jax.process_count(), "global_devices": len(jax.devices()),
            "local_devices": len(jax.local_devices()), "status": [_status(fit), _status(il)],
@@ -212,7 +213,7 @@ def run_single_reference():
     jax.config.update("jax_enable_x64", True)
     obs, lighting = make_capture()
     obs = uneven(obs, 2)
-    fit = solvers.fit_brdf(obs, lighting)
+    fit = solvers.fit_brdf(obs, lighting, search_pixels=300)
     il = solvers.inverse_lighting(obs, fit.brdf, 6)
     return {"kd": np.asarray(fit.brdf.kd).tolist(), "ks": np.asarray(fit.brdf.ks).tolist(), "mu": float(fit.brdf.mu),
             "sigma": float(fit.brdf.sigma), "rms": float(fit.rms), "coeffs": np.asarray(il.coeffs).ravel().tolist(),
