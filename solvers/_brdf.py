@@ -28,7 +28,6 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
@@ -144,16 +143,6 @@ MU_BOUNDS = (1.0 + 1e-3, 10.0)
 SIGMA_BOUNDS = (1e-3, 1.5)
 _AT_BOUND_TOL = 1e-3  # in log units
 
-
-
-def _lm_solver(dt):
-    """The linear solver of the LM refinement's damped Gauss-Newton steps.
-
-    In float64 (the optimizers run in the default float dtype): the p x p normal equations $(J^TJ + \\lambda I)$ by Cholesky (p <= 8 for three channels)
-    instead of a QR of the tall $(NC + p) \\times p$ Jacobian (measured: LM steps ~3x cheaper at 127k
-    samples); below float64 squaring the condition number is not affordable: QR (optimistix's default).
-    """
-    return lx.Normal(lx.Cholesky()) if dt == jnp.float64 else lx.QR()
 
 
 def _u_bounds(fresnel: bool, dt):
@@ -348,7 +337,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             return jnp.concatenate([r, jnp.sqrt(wall) * (uu - uc)]).astype(pdt)
 
         p0 = jnp.concatenate([kd, ks, u]).astype(pdt)
-        lm = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=_lm_solver(pdt)), p0, max_steps=max_steps,
+        lm = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0, max_steps=max_steps,
                                 throw=False)
         p1 = lm.value
         better = jnp.sum(resid(p1, None) ** 2) <= jnp.sum(resid(p0, None) ** 2)
