@@ -144,7 +144,6 @@ SIGMA_BOUNDS = (1e-3, 1.5)
 _AT_BOUND_TOL = 1e-3  # in log units
 
 
-
 def _u_bounds(fresnel: bool, dt):
     lo = [np.log(MU_BOUNDS[0] - 1.0), np.log(SIGMA_BOUNDS[0])]
     hi = [np.log(MU_BOUNDS[1] - 1.0), np.log(SIGMA_BOUNDS[1])]
