@@ -197,8 +197,9 @@ def fit_brdf(
       samples, evenly spaced over the samples of positive weight; the
       Levenberg–Marquardt refinement, the estimate, its standard errors and
       the status use all of them (None: every stage uses all samples).
-      Measured on 3×256² (127,584 samples): the same estimate to the LM
-      tolerance, the search 3× cheaper (`benchmarks/bench_inverse.py`).
+      Measured on 3×256² (127,584 samples, `benchmarks/bench_inverse.py`):
+      the estimate equal to 2e-11 to that of an all-sample search, the warm
+      fit 2.8 s → 1.5 s.
     - `max_steps`, `rtol`, `atol`: simplex / LM limits (tolerances default to
       1e-8 in float64 and 1e-5 in float32).
     - `throw`: raise `solvers.SolveError` unless the status is `converged`
