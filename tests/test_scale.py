@@ -65,13 +65,20 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
     assert abs(r["fit_brdf"]["sigma"][1] - 0.15) < 0.01  # a real fit, not a trivial one
 
 
-@pytest.mark.skip(reason="too slow for the suite on CPU: not a hang (py-spy: compiling), it finished in ~17 min on "
-                  "4 forced host devices of a 2-core machine at load 12, both statuses converged, simplex step "
-                  "counts differ by rounding; the estimates' agreement is not measured yet (docs/howto_scale.md)")
+# factorize's stage 1 finds K_s by golden section and mu by a parabola through RSS values: a minimizer located
+# from function values is resolved only to ~sqrt(eps) = 1.5e-8 (relative) when the rounding of the sums changes,
+# and the lighting, the source found in it and its background inherit that, amplified (measured on 4 forced
+# devices: brdf 3e-8 to 8e-8, the lighting 1.5e-7, the source background 2.8e-7; unchanged with 1e-11 stopping
+# tolerances for the refinement). The inverse lighting at these parameters is well conditioned (singular
+# values within 4x), so the spread is the minimizers', not an ill-conditioned solve's.
+MINIMIZER_TOL = 1e-6
+
+
+@pytest.mark.slow  # ~50 s on a quiet 2-core machine (was skipped: ~17 min under load 12, mostly compiling)
 def test_sharded_factorize_equals_one_device():
     r = _worker("equal", "factorize")
     assert r["factorize"]["status"][0] == r["factorize"]["status"][1] == "converged"
-    assert _agrees(r["factorize"]["rel"], r["factorize"]["steps"]), r
+    assert r["factorize"]["rel"] < MINIMIZER_TOL, r
 
 
 def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
