@@ -33,9 +33,12 @@ call is timed once):
    ``solvers.observations`` (96 views -> flat pixels; numpy) then
    ``solvers.fit_brdf(obs, [one solvers.Lighting per view])`` (per-image
    lighting: grid start, Nelder-Mead over (log(mu-1), log sigma) with the
-   linear (kd, ks) solved per channel inside, joint Levenberg-Marquardt over
-   all 8 parameters, standard errors). numpy/scipy: **the same algorithm**
-   from the same flat pixels: per-pixel terms (cos, half angle) in numpy,
+   linear (kd, ks) solved per channel inside, both on at most 40,000
+   samples, then Levenberg-Marquardt on all samples over the same profiled
+   residual, whose minimizer is the joint one; standard errors).
+   numpy/scipy: **the same algorithm** (searching on all samples, refining
+   jointly: the same optimum) from the same flat pixels: per-pixel terms
+   (cos, half angle) in numpy,
    the same 3x12 start grid, ``scipy.optimize.minimize(method="Nelder-Mead")``
    over (log(mu-1), log sigma) with the 2x2 normal equations for (kd, ks)
    per channel inside (variable projection), then

@@ -30,10 +30,13 @@ What is timed (wall clock; "first" = first call incl. tracing + XLA compile,
    recurrence) solved by ``numpy.linalg.lstsq`` per channel.
 2. BRDF fit, known lighting (R&H sec. 6.1, eq. 24; slow SH lighting to l 40
    plus the directional source).
-   jaxsh: ``solvers.fit_brdf`` (precomputed terms, grid start, Nelder-Mead
-   over (mu, sigma) with an inner linear solve for kd, ks, then a joint
-   Levenberg-Marquardt, standard errors).
-   scipy: the same algorithm: the same per-pixel precomputation in numpy
+   jaxsh: ``solvers.fit_brdf`` (precomputed terms, grid start and Nelder-Mead
+   over (mu, sigma) with an inner linear solve for kd, ks, both on 40,000 of
+   the samples, then Levenberg-Marquardt on all samples over the same
+   profiled residual (variable projection: the joint optimum), standard
+   errors).
+   scipy: the same algorithm, searching on all samples and refining jointly
+   (the same optimum): the same per-pixel precomputation in numpy
    (irradiance, per-band mirror lighting P_l(R), half angles), the same start
    grid, ``scipy.optimize.minimize(method="Nelder-Mead")`` over
    (log(mu-1), log sigma) with ``numpy.linalg.lstsq`` inner solves for

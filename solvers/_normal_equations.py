@@ -15,7 +15,7 @@ problem of the solvers goes through here:
   of the factorization's Schur complement).
 - `solve_spd_unrolled`, `inverse_spd_unrolled`: Gaussian elimination of
   small SPD systems, unrolled in Python into plain XLA ops.
-- `solve_sym2`, `inverse_sym2_diag`, `solve_grouped_shared`: the $2\\times2$
+- `solve_sym2`, `solve_sym2_min_norm`, `inverse_sym2_diag`, `solve_grouped_shared`: the $2\\times2$
   $(K_d, K_s)$ eliminations of `fit_brdf` (per channel, per texel, and the
   Schur complement of one shared $K_s$ with a $K_d$ per texel).
 - `covariance_from_jacobian`: $\\mathrm{cov} = s^2 (J^TJ)^{+}$,
@@ -231,6 +231,21 @@ def solve_sym2(a11, a12, a22, r1, r2):
     x1 = (a22 * r1 - a12 * r2) / det_s
     x2 = (a11 * r2 - a12 * r1) / det_s
     return jnp.where(bad, 0.0, x1), jnp.where(bad, 0.0, x2), bad
+
+
+def solve_sym2_min_norm(a11, a12, a22, r1, r2):
+    """`solve_sym2`, with the minimum-norm least-squares solution $A^+ r$ where it flags the system singular.
+
+    A singular symmetric PSD $2\\times2$ $A$ has rank $\\le 1$, $A = \\lambda u u^T$, so
+    $A^+ = A / (\\mathrm{tr}\\,A)^2$ (0 for $A = 0$). `fit_brdf`'s homogeneous inner solve uses it: under
+    lighting that makes the diffuse and specular images proportional (uniform lighting, thesis sec. 3.2.2) the
+    data still fix $K_d E + K_s S$, and the profiled residual is that fit's, not the data's. Returns `x1, x2, bad`.
+    """
+    x1, x2, bad = solve_sym2(a11, a12, a22, r1, r2)
+    tr = a11 + a22
+    pos = tr > 0
+    s = jnp.where(pos, 1.0 / jnp.where(pos, tr, 1.0) ** 2, 0.0)
+    return jnp.where(bad, (a11 * r1 + a12 * r2) * s, x1), jnp.where(bad, (a12 * r1 + a22 * r2) * s, x2), bad
 
 
 def inverse_sym2_diag(a11, a12, a22):

@@ -202,3 +202,18 @@ def test_inverse_lighting_dual_one_lambertian_channel(lambertian_capture, gbs):
     np.testing.assert_allclose(np.asarray(res.coeffs9)[:, 1], sh[:, 1], atol=1e-9)
     assert np.asarray(res.covered).any()
     assert np.all(np.isfinite(np.asarray(res.image)))
+
+
+def test_min_norm_two_by_two_solve_against_numpy_pinv(rng):
+    # fit_brdf's homogeneous inner (K_d, K_s) solve: Cramer where regular, A^+ r = A r / tr(A)^2 where singular
+    from solvers._normal_equations import solve_sym2_min_norm
+
+    u = rng.normal(size=(5, 2))
+    cases = [np.outer(x, x) * s for x, s in zip(u, [1.0, 3.0, 0.2, 1.0, 1.0])]  # rank 1
+    cases += [np.diag([2.0, 0.0]), np.zeros((2, 2)), np.array([[2.0, 0.5], [0.5, 1.0]])]  # one-sided, zero, regular
+    a = np.stack(cases)
+    r = rng.normal(size=(len(cases), 2))
+    x1, x2, bad = solve_sym2_min_norm(*(jnp.asarray(v) for v in (a[:, 0, 0], a[:, 0, 1], a[:, 1, 1], r[:, 0], r[:, 1])))
+    want = np.stack([np.linalg.pinv(m) @ v for m, v in zip(a, r)])
+    np.testing.assert_allclose(np.stack([x1, x2], 1), want, rtol=1e-9, atol=1e-12)
+    assert np.asarray(bad).tolist() == [True] * 7 + [False]
