@@ -260,17 +260,13 @@ def _search_samples(weights, m: int):
     Weight-0 padding (`shard_observations`) is never drawn, so a sharded capture searches the same samples
     as the unsharded one. Weights spread over several processes (`jax.distributed`) are not fetched to the
     host: the indices are computed by XLA (replicated)."""
-    if getattr(weights, "is_fully_addressable", True):
-        pos = np.flatnonzero(np.asarray(weights) > 0)
-        n_pos = pos.size
-    else:
-        n_pos = int(jnp.sum(weights > 0))
+    local = getattr(weights, "is_fully_addressable", True)
+    pos = np.flatnonzero(np.asarray(weights) > 0) if local else None
+    n_pos = pos.size if local else int(jnp.sum(weights > 0))
     if n_pos <= m:
         return None
     k = np.round(np.linspace(0, n_pos - 1, m)).astype(np.int64)
-    if getattr(weights, "is_fully_addressable", True):
-        return jnp.asarray(pos[k])
-    return jnp.nonzero(weights > 0, size=n_pos)[0][jnp.asarray(k)]
+    return jnp.asarray(pos[k]) if local else jnp.nonzero(weights > 0, size=n_pos)[0][jnp.asarray(k)]
 
 
 def _rows_of(terms, idx):
