@@ -39,6 +39,7 @@ from jaxtyping import Array, Float, Int
 import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
+from ._jacobian import explicit_jacobian
 from ._normal_equations import covariance_from_jacobian, inverse_sym2_diag, solve_grouped_shared, solve_sym2, solve_sym2_min_norm
 from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
@@ -336,8 +337,9 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             return jnp.concatenate([r.reshape(-1), jnp.sqrt(wall) * (uu - uc)]).astype(pdt)
 
         p0 = u.astype(pdt)
-        lm = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0, max_steps=max_steps,
-                                throw=False)
+        # `explicit_jacobian`: the solver's state then holds the (m, 2) Jacobian, not the residual's intermediates
+        lm = optx.least_squares(explicit_jacobian(resid), optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0,
+                                max_steps=max_steps, throw=False)
         p1 = lm.value
         better = jnp.sum(resid(p1, None) ** 2) <= jnp.sum(resid(p0, None) ** 2)
         p = jnp.where(better & jnp.all(jnp.isfinite(p1)), p1, p0).astype(dt)

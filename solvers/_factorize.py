@@ -70,7 +70,8 @@ import jaxsh
 from ._data import Lighting, Observations, TorranceSparrow
 from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
-from ._normal_equations import Gram, accumulate_gram, eq25_rows, inverse_spd_unrolled, pinv_psd, solve_spd_unrolled
+from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_unrolled,
+                                mirror_table, pinv_psd, solve_spd_unrolled)
 from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
@@ -481,13 +482,18 @@ def factorize(
         dual_height = int(np.clip(np.floor(np.sqrt(sub.n_samples / 32.0)), 8, 64))
     # Stage 1: nested 1-D searches over mu (batched grid, then two zooms) and ks (golden, per channel).
     curv_rss = None
+    tab = None
     if fresnel:
+        if lighting_method == "sh" and sub.n_samples * (2 * lmax + 1) ** 2 * 8 <= _TABLE_BYTES:
+            tab = _mirror_table_jit(sub, lmax)
         t = np.linspace(np.log(0.05), np.log(2.5), 9)
         for rnd in range(3):
             # every round is padded to 9 candidates (the zooms repeat their last point): one compiled program
             tp = np.concatenate([t, np.full(9 - len(t), t[-1])])
             if lighting_method == "dual":
                 vals = np.asarray(_mu_candidates_dual(sub, jnp.asarray(tp, dt), dual_height))[: len(t)]
+            elif tab is not None:
+                vals = np.asarray(_mu_candidates_table(tab, jnp.asarray(tp, dt), lmax, rcond))[: len(t)]
             else:
                 vals = np.asarray(_mu_candidates(sub, jnp.asarray(tp, dt), lmax, chunk, rcond))[: len(t)]
             # all-NaN when the data carry no signal (black images): keep the centre, the status says no_signal
@@ -511,11 +517,13 @@ def factorize(
     else:
         mu, its1 = None, 0
     dual = None
+    blocks = (None, None)  # the eq.-25 blocks at the stage-1 mu on all pixels and on the subset, for the refinement
     if lighting_method == "dual":
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
         dual, res1 = _dual_stage1(obs, ks, mu, 2 * dual_height, lmax, rcond)
     else:
-        ks, res1, golden_steps = _stage1_final(obs, mu, lmax, chunk, rcond)
+        ks, res1, golden_steps, bl_obs, bl_sub = _stage1_final(obs, tab, mu, lmax, chunk, rcond)
+        blocks = (bl_obs, bl_obs if sub is obs else bl_sub)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
     std_inf = TorranceSparrow.unchecked(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
@@ -540,7 +548,7 @@ def factorize(
     if not refine:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
-    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond)
+    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
     brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, sigma)
     se_mu = None
@@ -592,41 +600,54 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
     return jax.lax.map(one, t)
 
 
+# `factorize` searches mu on a `MirrorTable` of the subset when it takes at most this many bytes (40,000 samples at
+# l* = 12: 200 MB), otherwise by `accumulate_gram` per candidate (`_mu_candidates`)
+_TABLE_BYTES = 512 * 2**20
+
+
 @eqx.filter_jit
-def _stage1_final(obs, mu, lmax, chunk, rcond):
+def _mirror_table_jit(o: Observations, lmax: int) -> MirrorTable:
+    return mirror_table(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, lmax)
+
+
+@eqx.filter_jit
+def _mu_candidates_table(tab: MirrorTable, t, lmax, rcond):
+    """`_mu_candidates` from the subset's `MirrorTable`: the blocks of every candidate by `grams_at_mus`."""
+    g = grams_at_mus(tab, 1.0 + jnp.exp(t), lmax)
+    bl = _Blocks(g, _pinv_each(g.ss[:, 9:, 9:], rcond))
+    ones = jnp.ones(((lmax + 1) ** 2,), tab.b.dtype)
+    _, rss, _ = jax.vmap(lambda b: _golden_ks(b, ones, 1e-9, 1e-9, 100))(bl)
+    return jnp.sum(rss, -1) / jnp.sum(g.bb, -1)
+
+
+def _pinv_each(a, rcond):
+    """`pinv_psd` of each matrix of `a` `(K, m, m)`, one eigendecomposition per call (`eig_solve`: no batched eigh)."""
+    return jnp.stack([pinv_psd(a[i], rcond) for i in range(a.shape[0])])
+
+
+@eqx.filter_jit
+def _stage1_final(obs, tab, mu, lmax, chunk, rcond):
+    """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there, and the blocks at mu on all
+    pixels and (from the subset's `MirrorTable` `tab`; None without one) on the subset, which the refinement reuses."""
     dt = obs.values.dtype
     ones = jnp.ones(((lmax + 1) ** 2,), dt)
     bl = _blocks(obs, mu, lmax, chunk, rcond)
     ks, _, steps = _golden_ks(bl, ones, 1e-11, 1e-11, 100)
-    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps
-
-
-def _fast_column(n, v, mu, sigma, d, fvis=None):
-    """Diffuse and specular rows of a unit-energy delta source at d (eqs. 23, 24): (N,), (N,).
-
-    `fvis` `(N,)`: the source's visibility $V$ at each pixel (R&H sec. 6.4: "we check if these sources are
-    shadowed"), or None (convex object, $V = 1$). Both rows are those of `jaxsh.practical_terms` for one fast
-    source of unit energy, `fast_visibility=fvis[:, None]`: $V\\,[\\cos\\theta_i > 0]\\cos\\theta_i$ and
-    $F\\,V\\,[\\cos\\theta_i > 0]\\,T(\\theta_h)/(4\\cos\\theta_o)$, zero where $\\cos\\theta_o \\le 0$.
-    """
-    cos_o = jnp.sum(n * v, -1)
-    vis = cos_o > 0
-    cos_o = jnp.where(vis, cos_o, 1.0)
-    f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
-    cos_i = n @ d
-    lit = (cos_i > 0) & vis
-    th = jaxsh.half_angle(d[None, :], v, n)
-    t = jnp.exp(-((th / sigma) ** 2)) / (jnp.pi * sigma**2)
-    v_d = jnp.ones_like(cos_o) if fvis is None else fvis
-    return jnp.where(lit, cos_i * v_d, 0.0), jnp.where(lit, f * v_d * t / (4 * cos_o), 0.0)
+    bl_sub = None
+    if tab is not None:
+        g = jax.tree_util.tree_map(lambda a: a[0], grams_at_mus(tab, mu[None], lmax))
+        bl_sub = _Blocks(g, pinv_psd(g.ss[9:, 9:], rcond))
+    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl, bl_sub
 
 
 class _Joint(eqx.Module):
     """Everything the refinement objective needs for one pixel set (mu fixed)."""
 
     bl: _Blocks
-    drows: Array  # (N, 9)  weighted by sqrt(w)? no: raw rows
-    srows: Array  # (N, n)
+    # (9 + n, N): the diffuse and the (unfiltered) specular rows of eq. 25, stacked, pixels last: `rows @ x` is a
+    # plain matrix-vector product (`rows.T @ x` on an (N, 9 + n) array made XLA copy a transpose per evaluation
+    # inside the simplex's loop, 57 MB at 40,000 samples: 10.5 ms per step against 3.7 ms for its two evaluations)
+    rows: Array
     w: Array
     b: Array
     normals: Array
@@ -634,38 +655,76 @@ class _Joint(eqx.Module):
     fvis: Array | None  # (N,) visibility of the found source (a column of `fast_visibility`), or None
 
 
-def _joint(o: Observations, mu, lmax, chunk, rcond, column) -> _Joint:
-    bl = _blocks(o, mu, lmax, chunk, rcond)
+def _joint(o: Observations, bl, mu, lmax, chunk, rcond, column) -> _Joint:
+    """`_Joint` of `o`; `bl`: its eq.-25 blocks at `mu` when already formed (else None: formed here)."""
+    bl = _blocks(o, mu, lmax, chunk, rcond) if bl is None else bl
     d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax)
     fvis = None if column is None else o.fast_visibility[:, column]
-    return _Joint(bl, d, s, o.weights, o.values, o.normals, o.views, fvis)
+    return _Joint(bl, jnp.concatenate([d, s], 1).T, o.weights, o.values, o.normals, o.views, fvis)
 
 
-def _joint_rss(jt: _Joint, ks, sigma, mu, d, lmax):
-    """RSS per channel of [slow SH filtered by sigma + delta source at d] for kd = 1 - ks."""
-    dt = jt.b.dtype
+class _SourceParts(eqx.Module):
+    """The rows of a unit-energy delta source at `d` (eqs. 23, 24), in the parts that stay fixed in the refinement.
+
+    `fvis` `(N,)` (`_Joint`): the source's visibility $V$ at each pixel (R&H sec. 6.4: "we check if these
+    sources are shadowed"), or None (convex object, $V = 1$). Diffuse row `fd` $= V[\\cos\\theta_i > 0]\\cos\\theta_i$;
+    specular row `amp * exp(-th2 / sigma^2) / (pi sigma^2)` $= F V [\\cos\\theta_i > 0]\\,T(\\theta_h)/(4\\cos\\theta_o)$;
+    both zero where $\\cos\\theta_o \\le 0$: the rows of `jaxsh.practical_terms` for one fast source of unit
+    energy with `fast_visibility=fvis[:, None]` (`tests/test_inverse.py`). With $\\mu$, `d` and the shadow fixed,
+    only the specular row's lobe depends on σ, so `fd`, its sums with the slow rows and the data, `amp` and
+    $\\theta_h^2$ are formed once per compiled call."""
+
+    fd: Array  # (N,)
+    amp: Array  # (N,)
+    th2: Array  # (N,) theta_h^2
+    rows_fd: Array  # (9 + n,) rows @ (w fd)
+    fd_fd: Array  # ()
+    fd_b: Array  # (C,)
+
+
+def _source_parts(jt: _Joint, mu, d) -> _SourceParts:
+    n, v = jt.normals, jt.views
+    cos_o = jnp.sum(n * v, -1)
+    vis = cos_o > 0
+    cos_o = jnp.where(vis, cos_o, 1.0)
+    f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
+    cos_i = n @ d
+    lit = (cos_i > 0) & vis
+    v_d = jnp.ones_like(cos_o) if jt.fvis is None else jt.fvis
+    fd = jnp.where(lit, cos_i * v_d, 0.0)
+    amp = jnp.where(lit, f * v_d / (4 * cos_o), 0.0)
+    th2 = jaxsh.half_angle(d[None, :], v, n) ** 2
+    wfd = jt.w * fd
+    return _SourceParts(fd, amp, th2, jt.rows @ wfd, jnp.sum(wfd * fd), wfd @ jt.b)
+
+
+def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
+    """RSS per channel of [slow SH filtered by sigma + delta source at d] for kd = 1 - ks (the source's rows
+    from the precomputed `sp`: one pass over the rows per evaluation)."""
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     kd = 1.0 - ks
-    fd, fs = _fast_column(jt.normals, jt.views, mu, sigma, d, jt.fvis)
-    w = jt.w
+    fs = sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
+    wfs = jt.w * fs
+    rows_fs = jt.rows @ wfs
     # cross terms with the (filtered) slow columns
-    dfd, dfs = jt.drows.T @ (w * fd), jt.drows.T @ (w * fs)  # (9,)
-    sfd, sfs = (jt.srows.T @ (w * fd)) * filt, (jt.srows.T @ (w * fs)) * filt  # (n,)
+    dfd, dfs = sp.rows_fd[:9], rows_fs[:9]  # (9,)
+    sfd, sfs = sp.rows_fd[9:] * filt, rows_fs[9:] * filt  # (n,)
     a_d = (kd**2)[None, :] * dfd[:, None] + (kd * ks)[None, :] * (dfs[:, None] + sfd[:9, None]) + (ks**2)[None, :] * sfs[:9, None]
     a_s = (ks * kd)[None, :] * sfd[9:, None] + (ks**2)[None, :] * sfs[9:, None]
-    a_ss = kd**2 * jnp.sum(w * fd * fd) + 2 * kd * ks * jnp.sum(w * fd * fs) + ks**2 * jnp.sum(w * fs * fs)
-    r_s = kd * ((w * fd) @ jt.b) + ks * ((w * fs) @ jt.b)
-    del dt
+    a_ss = kd**2 * sp.fd_fd + 2 * kd * ks * jnp.sum(wfs * sp.fd) + ks**2 * jnp.sum(wfs * fs)
+    r_s = kd * sp.fd_b + ks * (wfs @ jt.b)
     return _schur_rss(jt.bl, kd, ks, filt, (a_d, a_s, a_ss, r_s))
 
 
-def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond):
-    jt_sub = _joint_jit(sub, mu, lmax, chunk, rcond, None)  # the Gram blocks once, whatever the source's shadow
+def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None)):
+    """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here)."""
+    bl_obs, bl_sub = blocks
+    jt_sub = _joint_jit(sub, bl_sub, mu, lmax, chunk, rcond, None)  # the Gram blocks once, whatever the shadow
     column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
     p, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
-    jt = jt_sub if sub is obs else _joint_jit(obs, mu, lmax, chunk, rcond, column)
+    jt = jt_sub if sub is obs else _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
     return _refine_final(jt, p, mu, d, lmax, status, its)
 
 
@@ -686,12 +745,13 @@ def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
 
 @eqx.filter_jit
 def _column_rss(jt, fvis, mu, ks, d, sigma, lmax):
-    return jnp.sum(_joint_rss(dataclasses.replace(jt, fvis=fvis), ks, sigma, mu, d, lmax)[0])
+    jt = dataclasses.replace(jt, fvis=fvis)
+    return jnp.sum(_joint_rss(jt, _source_parts(jt, mu, d), ks, sigma, lmax)[0])
 
 
 @eqx.filter_jit
-def _joint_jit(o, mu, lmax, chunk, rcond, column):
-    return _joint(o, mu, lmax, chunk, rcond, column)
+def _joint_jit(o, bl, mu, lmax, chunk, rcond, column):
+    return _joint(o, bl, mu, lmax, chunk, rcond, column)
 
 
 def _unpack(p, c):
@@ -704,10 +764,11 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
 
     dt = jt.b.dtype
     pdt = jnp.asarray(0.0).dtype  # optimistix's simplex state uses the default float dtype
+    sp = _source_parts(jt, mu, d)
 
     def objective(p, _):
         ks, sigma = _unpack(p.astype(dt), c)
-        rss, _, _ = _joint_rss(jt, ks, sigma, mu, d, lmax)
+        rss, _, _ = _joint_rss(jt, sp, ks, sigma, lmax)
         return (jnp.sum(rss) / jnp.sum(jt.bl.g.bb)).astype(pdt)
 
     ks_c = jnp.clip(ks0, 1e-4, 1 - 1e-4)
@@ -719,7 +780,7 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
 _FD_STEP = 1e-3  # relative step of the central differences in `_profiled_hessian`
 
 
-def _profiled_hessian(jt, ks, sigma, mu, d, lmax):
+def _profiled_hessian(jt, sp, ks, sigma, lmax):
     """Hessian of the profiled RSS $\\sum_c \\mathrm{rss}_c(K_{s,c}, \\sigma)$ over $(K_s, \\sigma)$, `(C+1, C+1)`.
 
     Channel c's RSS depends on its own $K_{s,c}$ and on σ only, so the $K_s$ block is diagonal and a 9-point
@@ -736,7 +797,7 @@ def _profiled_hessian(jt, ks, sigma, mu, d, lmax):
     a, b = jnp.asarray(a.ravel(), ks.dtype), jnp.asarray(b.ravel(), ks.dtype)
 
     def rss_at(ai, bi):
-        return _joint_rss(jt, ks + ai * hk, sigma + bi * hs, mu, d, lmax)[0]  # (C,)
+        return _joint_rss(jt, sp, ks + ai * hk, sigma + bi * hs, lmax)[0]  # (C,)
 
     r = jax.vmap(rss_at)(a, b).reshape(3, 3, c)  # [ks step, sigma step, channel]
     h_kk = (r[2, 1] - 2.0 * r[1, 1] + r[0, 1]) / hk**2
@@ -750,7 +811,8 @@ def _profiled_hessian(jt, ks, sigma, mu, d, lmax):
 def _refine_final(jt, p, mu, d, lmax, status, its):
     c = jt.b.shape[1]
     ks, sigma = _unpack(p, c)
-    rss, x1, x2 = _joint_rss(jt, ks, sigma, mu, d, lmax)
+    sp = _source_parts(jt, mu, d)
+    rss, x1, x2 = _joint_rss(jt, sp, ks, sigma, lmax)
     nobs = jt.bl.g.count * c
     data_ss = jnp.sum(jt.bl.g.bb)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
@@ -759,7 +821,7 @@ def _refine_final(jt, p, mu, d, lmax, status, its):
     # standard errors of (ks, sigma): Hessian of the profiled RSS (Gauss-Newton: J'J = H/2)
     theta = jnp.concatenate([ks, sigma[None]])
 
-    hess = _profiled_hessian(jt, ks, sigma, mu, d, lmax)
+    hess = _profiled_hessian(jt, sp, ks, sigma, lmax)
     n_par = x1.size + x2.size + theta.size
     s2 = jnp.sum(rss) / jnp.maximum(nobs - n_par, 1.0)
     h2 = 0.5 * (hess + hess.T)

@@ -7,7 +7,10 @@ problem of the solvers goes through here:
   block $d$, 9 columns; specular block $s$, $(l^*+1)^2$ columns) and the sums
   $\\sum_x w\\,d^Td$, $d^Ts$, $s^Ts$, $d^Tb$, $s^Tb$, $b^Tb$ accumulated over
   pixel chunks by `lax.scan` (memory $O(n^2)$ whatever the pixel count), used
-  by `inverse_lighting` and by every evaluation of `factorize`.
+  by `inverse_lighting` and by the final solves of `factorize`.
+- `mirror_table`, `grams_at_mus`: the same blocks at many Fresnel indices for
+  one pixel set (`factorize`'s search over $\\mu$), the specular block by an
+  exact quadrature of the projected point set.
 - `channel_system`, `eig_solve`: the per-channel normal equations
   $A_c = K_{d,c}\\,d + K_{s,c}\\,s$ and their eigen-solve with singular values,
   rank, standard errors and the null space flagged (`inverse_lighting`).
@@ -119,6 +122,70 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int)
 
     out, _ = jax.lax.scan(step, init, (n_p, v_p, b_p, w_p, t_p, r_p))
     return out
+
+
+class MirrorTable(eqx.Module):
+    """The $\\mu$-independent parts of eq. 25's rows for one pixel set (`mirror_table`), for `grams_at_mus`.
+
+    `y2` `(n_2, N)`: $Y_{LM}(R)$ of the mirror directions for $L \\le 2 l^*$ (its first
+    $(l^*+1)^2$ rows are the specular rows' harmonics); `d` `(N, 9)`: the diffuse rows;
+    `s_scale` `(N,)`: the reflected-ray visibility, 0 where the pixel is seen from behind;
+    `cos_o` `(N,)`: $\\cos\\theta_o$ (1 where seen from behind); `b` `(N, C)`, `w` `(N,)`.
+    """
+
+    y2: jax.Array
+    d: jax.Array
+    s_scale: jax.Array
+    cos_o: jax.Array
+    b: jax.Array
+    w: jax.Array
+
+
+def mirror_table(n, v, b, w, transfer, rvis, lmax: int) -> MirrorTable:
+    """`MirrorTable` of eq. 25's rows (`eq25_rows` without the Fresnel factor); memory $O(N (2l^*+1)^2)$."""
+    d, _ = eq25_rows(n, v, transfer, None, None, None, min(lmax, 2))
+    cos_o = jnp.sum(n * v, -1)
+    vis = cos_o > 0
+    scale = jnp.where(vis, 1.0 if rvis is None else rvis, 0.0).astype(n.dtype)
+    y2 = jaxsh.real_sh(jaxsh.reflect(v, n), 2 * lmax).T
+    return MirrorTable(y2, d, scale, jnp.where(vis, cos_o, 1.0), b, w)
+
+
+def grams_at_mus(tab: MirrorTable, mus, lmax: int) -> Gram:
+    """The eq.-25 `Gram` blocks (unfiltered) at each Fresnel index of `mus` `(K,)`: every field gets a leading K.
+
+    Equal to `accumulate_gram` at each $\\mu$ (to rounding; `tests/test_inverse.py`), at a fraction of the
+    cost when several $\\mu$ share one pixel set. The specular block is
+    $SS = \\sum_i g_i\\,Y(R_i)\\,Y(R_i)^T$ with $g_i = w_i F(\\mu, \\theta_{o,i})^2 V_i^2$. A product
+    $Y_{lm}Y_{l'm'}$ with $l, l' \\le l^*$ is a polynomial of degree $\\le 2l^*$ on the sphere, so
+    $\\sum_i g_i Y_{lm}Y_{l'm'}(R_i) = \\int Y_{lm}Y_{l'm'} H\\,d\\omega$ with
+    $H = \\sum_{L \\le 2l^*} h_{LM} Y_{LM}$, $h_{LM} = \\sum_i g_i Y_{LM}(R_i)$ (the projection of the weighted
+    point set), and the integrand, of degree $\\le 4l^*$, is integrated exactly by the Gauss-Legendre grid of
+    $(2l^*+1) \\times (4l^*+1)$ nodes (`jaxsh.gauss_legendre_grid`). Per $\\mu$ that costs
+    $O(N(2l^*+1)^2 + Q(l^*+1)^4)$, $Q = (2l^*+1)(4l^*+1)$, instead of $O(N(l^*+1)^4)$: at $l^* = 12$ and
+    $N = 40{,}000$, 9 $\\mu$ in 23 ms against 9 × 70 ms (measured). The other blocks are plain sums.
+    """
+    nc = (lmax + 1) ** 2
+    dt = tab.b.dtype
+    k, c = mus.shape[0], tab.b.shape[1]
+    f = jax.vmap(lambda mu: jaxsh.fresnel_normalized(tab.cos_o, mu), out_axes=1)(mus)  # (N, K)
+    wf = (tab.w * tab.s_scale)[:, None] * f  # w F V: the s rows' factor times the weight
+    g2 = wf * (tab.s_scale[:, None] * f)  # w F^2 V^2
+    grid, wq = jaxsh.gauss_legendre_grid(2 * lmax + 1, 4 * lmax + 1, dtype=dt)
+    yq2 = jaxsh.real_sh(grid.reshape(-1, 3), 2 * lmax)  # (Q, n_2)
+    yq = yq2[:, :nc]
+    hq = (yq2 @ (tab.y2 @ g2)) * wq.reshape(-1)[:, None]  # (Q, K): H at the nodes times the weights
+    ss = jnp.einsum("qa,qk,qb->kab", yq, hq, yq)
+    y = tab.y2[:nc]  # (n, N)
+    npx = tab.d.shape[0]
+    ds = (y @ (tab.d[:, None, :] * wf[:, :, None]).reshape(npx, k * 9)).reshape(nc, k, 9).transpose(1, 2, 0)
+    sb = (y @ (wf[:, :, None] * tab.b[:, None, :]).reshape(npx, k * c)).reshape(nc, k, c).transpose(1, 0, 2)
+    wd = tab.d * tab.w[:, None]
+    dd, db = wd.T @ tab.d, wd.T @ tab.b
+    bb = jnp.sum(tab.w[:, None] * tab.b * tab.b, 0)
+    count = jnp.sum((tab.w > 0).astype(dt))
+    rep = lambda a: jnp.broadcast_to(a, (k,) + a.shape)  # noqa: E731
+    return Gram(rep(dd), ds, ss, rep(db), sb, rep(bb), rep(count))
 
 
 def channel_system(g: Gram, kd, ks):

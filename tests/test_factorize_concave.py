@@ -6,7 +6,7 @@ directional source whose shadow the head casts on the body. The images are ray-t
 ray-cast against the mesh), not by the practical model the solver fits. The observations carry the
 visibility terms of sec. 6.4 (transfer vectors, the shadow of the directional source, the
 reflected-ray visibility); the factorization's refinement models the found source as a delta whose
-diffuse and specular rows must carry that shadow (`_fast_column`). Fresnel is off (a metal, F = 1,
+diffuse and specular rows must carry that shadow (`solvers._factorize._source_parts`). Fresnel is off (a metal, F = 1,
 `fresnel=False`) to keep the test short: the visibility enters the refinement, not the mu search.
 """
 
