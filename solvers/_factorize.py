@@ -25,7 +25,7 @@ searches (the channels decouple once $\\mu$ is fixed):
   `optimistix.GoldenSearch`, `vmap`ped over the channels inside the same jit
   (no host round trip), plus a check of the end point $K_s = 1$. Each step
   eliminates the $l > 2$ coefficients with that pseudo-inverse and solves the
-  $9 \\times 9$ Schur complement of the $l \\le 2$ ones by unrolled Gaussian
+  $9 \\times 9$ Schur complement of the $l \\le 2$ ones by Gaussian
   elimination (no LAPACK call inside the loop; see `_normal_equations`).
 
 At the chosen $\\mu$ the search is repeated on all pixels and the lighting
@@ -70,8 +70,8 @@ import jaxsh
 from ._data import Lighting, Observations, TorranceSparrow
 from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
-from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_unrolled,
-                                mirror_table, pinv_psd, solve_spd_unrolled)
+from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
+                                mirror_table, pinv_psd, solve_spd_small)
 from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
@@ -185,7 +185,7 @@ def _schur_rss(bl: _Blocks, kd, ks, filt, src=None):
     yy = jnp.einsum("cij,ckj->cik", q, a12)  # (C, m, k)
     schur = a11 - jnp.einsum("ckj,cjl->ckl", a12, yy)
     rhs = r1 - jnp.einsum("ckj,cj->ck", a12, y)
-    x1 = solve_spd_unrolled(schur, rhs)
+    x1 = solve_spd_small(schur, rhs)
     x2 = y - jnp.einsum("cjk,ck->cj", yy, x1)
     rss = g.bb - jnp.sum(r1 * x1, -1) - jnp.sum(r2 * x2, -1)
     return rss, x1, x2
@@ -522,7 +522,7 @@ def factorize(
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
         dual, res1 = _dual_stage1(obs, ks, mu, 2 * dual_height, lmax, rcond)
     else:
-        ks, res1, golden_steps, bl_obs, bl_sub = _stage1_final(obs, tab, mu, lmax, chunk, rcond)
+        ks, res1, golden_steps, bl_obs, bl_sub = _stage1_final(obs, None if sub is obs else tab, mu, lmax, chunk, rcond)
         blocks = (bl_obs, bl_obs if sub is obs else bl_sub)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
@@ -786,7 +786,7 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
     Channel c's RSS depends on its own $K_{s,c}$ and on σ only, so the $K_s$ block is diagonal and a 9-point
     central-difference stencil in $(K_s, \\sigma)$ (all channels' $K_s$ moved together, steps `_FD_STEP`
     relative) gives every entry, from 9 evaluations of `_joint_rss` in one `vmap`. The exact second
-    derivative through the unrolled eliminations of `_schur_rss` (`jax.hessian`) took 7-10 s to compile;
+    derivative through the (then unrolled) eliminations of `_schur_rss` (`jax.hessian`) took 7-10 s to compile;
     measured against it: the Hessian and the variances agree to 9e-7 on a 3-view 48² sphere
     (`tests/test_inverse.py` checks 1e-5).
     """
@@ -825,8 +825,8 @@ def _refine_final(jt, p, mu, d, lmax, status, its):
     n_par = x1.size + x2.size + theta.size
     s2 = jnp.sum(rss) / jnp.maximum(nobs - n_par, 1.0)
     h2 = 0.5 * (hess + hess.T)
-    # small dense inverse by the unrolled elimination (no LAPACK)
-    hinv = inverse_spd_unrolled(0.5 * h2)
+    # small dense inverse by Gaussian elimination in plain XLA ops (no LAPACK)
+    hinv = inverse_spd_small(0.5 * h2)
     var = jnp.diag(hinv) * s2
     se = jnp.where((var > 0) & jnp.isfinite(var), jnp.sqrt(jnp.abs(var)), jnp.inf)
     return ks, sigma, lighting, se[:c], se[c], status, its, rms, rel, data_ss

@@ -48,7 +48,7 @@ import jaxsh
 
 from ._data import Observations
 from ._lighting import _dual_pieces
-from ._normal_equations import solve_spd_unrolled
+from ._normal_equations import solve_spd_small
 
 
 class _DualMoments(eqx.Module):
@@ -91,8 +91,8 @@ def _dual_rss_one(mo: _DualMoments, c: int | Array, ks):
     eye = jnp.eye(9, dtype=mo.g.dtype)
     mat = ks * (eye - mo.qu) + kd * mo.pm
     rhs = mo.pa[:, c]
-    # the 9x9 consistency system by its normal equations: unrolled elimination, no LAPACK in the loop
-    l1 = solve_spd_unrolled(mat.T @ mat, mat.T @ rhs)
+    # the 9x9 consistency system by its normal equations: `solve_spd_small`, no LAPACK in the loop
+    l1 = solve_spd_small(mat.T @ mat, mat.T @ rhs)
     rss = kd**2 * (l1 @ mo.g @ l1) - 2 * kd * (l1 @ mo.h[:, c]) + mo.qq[c]
     return jnp.maximum(rss, 0.0), l1
 

@@ -217,3 +217,23 @@ def test_min_norm_two_by_two_solve_against_numpy_pinv(rng):
     want = np.stack([np.linalg.pinv(m) @ v for m, v in zip(a, r)])
     np.testing.assert_allclose(np.stack([x1, x2], 1), want, rtol=1e-9, atol=1e-12)
     assert np.asarray(bad).tolist() == [True] * 7 + [False]
+
+
+def test_small_spd_solve_against_numpy(rng):
+    # the Schur complements' elimination (`solve_spd_small`, plain XLA ops inside the searches), batched, in both
+    # dtypes, against LAPACK; a singular system stays finite (the 16 eps diagonal jitter)
+    from solvers._normal_equations import inverse_spd_small, solve_spd_small
+
+    for dt, tol in ((np.float64, 1e-10), (np.float32, 2e-3)):
+        g = rng.normal(size=(4, 3, 10, 10))
+        m = (g @ np.swapaxes(g, -1, -2) + 0.1 * np.eye(10)).astype(dt)
+        r = rng.normal(size=(4, 3, 10)).astype(dt)
+        x = np.asarray(solve_spd_small(jnp.asarray(m), jnp.asarray(r)))
+        assert x.dtype == dt
+        want = np.linalg.solve(m.astype(np.float64), r.astype(np.float64)[..., None])[..., 0]
+        assert np.max(np.abs(x - want)) <= tol * np.max(np.abs(want))
+        np.testing.assert_allclose(np.asarray(inverse_spd_small(jnp.asarray(m[0, 0]))), np.linalg.inv(m[0, 0]),
+                                   rtol=tol * 10, atol=tol * np.max(np.abs(np.linalg.inv(m[0, 0]))))
+    u = rng.normal(size=(9, 1))
+    sing = jnp.asarray(u @ u.T)  # rank 1
+    assert np.all(np.isfinite(np.asarray(solve_spd_small(sing, jnp.ones(9)))))
