@@ -548,7 +548,8 @@ def factorize(
     if not refine:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
-    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks)
+    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks,
+                  None if sub is obs else tab)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
     brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, sigma)
     se_mu = None
@@ -716,10 +717,14 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
     return _schur_rss(jt.bl, kd, ks, filt, (a_d, a_s, a_ss, r_s))
 
 
-def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None)):
-    """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here)."""
+def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None):
+    """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here);
+    `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None."""
     bl_obs, bl_sub = blocks
-    jt_sub = _joint_jit(sub, bl_sub, mu, lmax, chunk, rcond, None)  # the Gram blocks once, whatever the shadow
+    if tab is not None and bl_sub is not None:
+        jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax)
+    else:
+        jt_sub = _joint_jit(sub, bl_sub, mu, lmax, chunk, rcond, None)  # the Gram blocks once, whatever the shadow
     column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
@@ -747,6 +752,14 @@ def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
 def _column_rss(jt, fvis, mu, ks, d, sigma, lmax):
     jt = dataclasses.replace(jt, fvis=fvis)
     return jnp.sum(_joint_rss(jt, _source_parts(jt, mu, d), ks, sigma, lmax)[0])
+
+
+@eqx.filter_jit
+def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _Joint:
+    """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH)."""
+    f = tab.s_scale if mu is None else tab.s_scale * jaxsh.fresnel_normalized(tab.cos_o, mu)
+    rows = jnp.concatenate([tab.d.T, tab.y2[: (lmax + 1) ** 2] * f[None, :]], 0)
+    return _Joint(bl, rows, o.weights, o.values, o.normals, o.views, None)
 
 
 @eqx.filter_jit

@@ -640,3 +640,16 @@ def test_dual_options(obs_noisy):
     concave = eqx.tree_at(lambda o: o.transfer, obs_noisy, jnp.ones((obs_noisy.n_samples, 9)), is_leaf=lambda x: x is None)
     with pytest.raises(ValueError, match="concave"):
         solvers.factorize(concave, 8, lighting_method="dual")
+
+
+def test_factorize_joint_rows_from_the_table_equal_those_of_eq25(obs_noisy):
+    # the refinement's rows on the search subset come from its MirrorTable; the reference is `eq25_rows`
+    from solvers import _factorize as F
+
+    sub = obs_noisy.subset(np.arange(0, obs_noisy.n_samples, 2))
+    mu = jnp.asarray(1.7)
+    direct = F._joint_jit(sub, None, mu, 12, 4096, 1e-12, None)
+    tab = F._mirror_table_jit(sub, 12)
+    via = F._joint_from_table(sub, tab, direct.bl, mu, 12)
+    assert via.rows.shape == direct.rows.shape == (9 + 169, sub.n_samples)
+    np.testing.assert_allclose(np.asarray(via.rows), np.asarray(direct.rows), rtol=1e-12, atol=1e-13)
