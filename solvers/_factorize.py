@@ -11,16 +11,20 @@ searches (the channels decouple once $\\mu$ is fixed):
 
 * **outer, over $t = \\log(\\mu - 1)$:** a grid of 9 values on
   $[\\log 0.05, \\log 2.5]$ ($\\mu \\in [1.05, 3.5]$), evaluated in one jitted
-  call (`lax.map`); then two zooms, each a grid of 7 values over one old
+  call (`vmap`; `lax.map` on the direct path below); then two zooms, each a grid of 7 values over one old
   grid step either side of the best point; then the parabola through the
   best point of the last grid and its two neighbours gives the continuous
   minimum (moved by at most one step) and, from its curvature, the standard
   error of $\\mu$. That is 23 evaluations and three host round trips (the
   zoom centres are chosen by `numpy.argmin` between the calls). Each
-  evaluation forms the normal-equation blocks of eq. 25 for that $\\mu$ once
-  (`accumulate_gram`, the expensive part, $O(N n^2)$, on a random subset of
-  `search_pixels` pixels) and the pseudo-inverse of their $l > 2$ block
-  (one eigendecomposition per $\\mu$);
+  evaluation forms the normal-equation blocks of eq. 25 for that $\\mu$ once,
+  on a random subset of `search_pixels` pixels, and the pseudo-inverse of
+  their $l > 2$ block (one eigendecomposition per $\\mu$). The blocks of all
+  candidates of a round come from one table of the subset's mirror-direction
+  harmonics to $2l^*$, made once (`grams_at_mus`: the specular block by an
+  exact quadrature of the projected point set, $O(N (2l^*+1)^2)$ per $\\mu$
+  instead of the direct sum's $O(N (l^*+1)^4)$; the direct sum,
+  `accumulate_gram`, where the table would exceed `_TABLE_BYTES`);
 * **inner, over $K_s \\in [10^{-6}, 1]$ per channel** ($K_d = 1 - K_s$):
   `optimistix.GoldenSearch`, `vmap`ped over the channels inside the same jit
   (no host round trip), plus a check of the end point $K_s = 1$. Each step
@@ -522,7 +526,9 @@ def factorize(
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
         dual, res1 = _dual_stage1(obs, ks, mu, 2 * dual_height, lmax, rcond)
     else:
-        ks, res1, golden_steps, bl_obs, bl_sub = _stage1_final(obs, None if sub is obs else tab, mu, lmax, chunk, rcond)
+        # the subset's table serves the blocks on all pixels too when the subset is all pixels
+        tabs = (tab, None) if sub is obs else (None, tab)
+        ks, res1, golden_steps, bl_obs, bl_sub = _stage1_final(obs, *tabs, mu, lmax, chunk, rcond)
         blocks = (bl_obs, bl_obs if sub is obs else bl_sub)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
@@ -548,8 +554,7 @@ def factorize(
     if not refine:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
-    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks,
-                  None if sub is obs else tab)
+    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
     brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, sigma)
     se_mu = None
@@ -626,18 +631,21 @@ def _pinv_each(a, rcond):
     return jnp.stack([pinv_psd(a[i], rcond) for i in range(a.shape[0])])
 
 
+def _blocks_from_table(tab: MirrorTable, mu, lmax: int, rcond) -> _Blocks:
+    g = jax.tree_util.tree_map(lambda a: a[0], grams_at_mus(tab, mu[None], lmax))
+    return _Blocks(g, pinv_psd(g.ss[9:, 9:], rcond))
+
+
 @eqx.filter_jit
-def _stage1_final(obs, tab, mu, lmax, chunk, rcond):
+def _stage1_final(obs, tab_obs, tab_sub, mu, lmax, chunk, rcond):
     """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there, and the blocks at mu on all
-    pixels and (from the subset's `MirrorTable` `tab`; None without one) on the subset, which the refinement reuses."""
+    pixels and on the subset, which the refinement reuses. `tab_obs`: the `MirrorTable` of all pixels (the
+    subset is all pixels), or None (direct sums); `tab_sub`: the subset's, or None (its blocks are not formed)."""
     dt = obs.values.dtype
     ones = jnp.ones(((lmax + 1) ** 2,), dt)
-    bl = _blocks(obs, mu, lmax, chunk, rcond)
+    bl = _blocks(obs, mu, lmax, chunk, rcond) if tab_obs is None else _blocks_from_table(tab_obs, mu, lmax, rcond)
     ks, _, steps = _golden_ks(bl, ones, 1e-11, 1e-11, 100)
-    bl_sub = None
-    if tab is not None:
-        g = jax.tree_util.tree_map(lambda a: a[0], grams_at_mus(tab, mu[None], lmax))
-        bl_sub = _Blocks(g, pinv_psd(g.ss[9:, 9:], rcond))
+    bl_sub = None if tab_sub is None else _blocks_from_table(tab_sub, mu, lmax, rcond)
     return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl, bl_sub
 
 

@@ -269,6 +269,26 @@ def test_gram_blocks_at_many_mu_by_quadrature_equal_the_direct_sums(rng):
                 assert np.max(np.abs(got - want)) <= 1e-13 * np.max(np.abs(want)), field  # measured <= 2.4e-15
 
 
+def test_factorize_from_the_table_equals_the_direct_sums_end_to_end(obs_noisy, factorization, monkeypatch):
+    # a capture smaller than `search_pixels`: the table of all pixels serves the mu search, the final stage-1
+    # blocks and the refinement's rows (the fixture); the reference forms them all by direct sums
+    from solvers import _factorize as F
+
+    assert obs_noisy.n_samples < 40000
+    monkeypatch.setattr(F, "_TABLE_BYTES", 0)
+    ref = solvers.factorize(obs_noisy, 12)
+    monkeypatch.undo()
+    new = factorization
+    np.testing.assert_allclose(float(new.brdf.mu), float(ref.brdf.mu), rtol=1e-9)
+    # K_s to the golden search's resolution on a flat minimum (below); sigma to the simplex's tolerance. Measured:
+    # mu 3.6e-12, K_s 7e-8, sigma 2.1e-8, slow lighting 2.0e-7 (of its largest coefficient), source energy 8e-8
+    np.testing.assert_allclose(np.asarray(new.brdf.ks), np.asarray(ref.brdf.ks), rtol=1e-6)
+    np.testing.assert_allclose(float(new.brdf.sigma), float(ref.brdf.sigma), rtol=1e-5)
+    slow, slow_ref = np.asarray(new.lighting.slow_sh), np.asarray(ref.lighting.slow_sh)
+    assert np.max(np.abs(slow - slow_ref)) <= 1e-4 * np.max(np.abs(slow_ref))
+    np.testing.assert_allclose(np.asarray(new.lighting.fast_energy), np.asarray(ref.lighting.fast_energy), rtol=1e-4)
+
+
 def test_factorize_mu_search_from_the_table_equals_the_direct_search(obs_noisy, monkeypatch):
     # the stage-1 objective at each mu candidate is the same whether its blocks come from the subset's table
     # (default) or from `accumulate_gram` per candidate (the path above `_TABLE_BYTES`)
