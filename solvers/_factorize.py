@@ -403,7 +403,11 @@ def factorize(
     - `refine`: joint refinement of $(K_s, \\sigma)$ and the lighting, with the
       lighting modelled as slow SH + the found source (needs `find_sigma`).
     - `search_pixels`: the searches use a random subset of this many pixels
-      (None: all); the final solve uses all pixels. `key`: PRNG key.
+      (None: all); the final solve uses all pixels. `key`: PRNG key. Memory:
+      with `fresnel`, the μ search holds the subset's harmonics to degree
+      2·`lmax` (8·(2·`lmax`+1)² bytes per sample: 200 MB for 40,000 samples
+      at `lmax` 12); where that would exceed 512 MB it forms each
+      candidate's blocks by direct sums instead (same result, slower).
     - `max_steps`, `rtol`, `atol`: the refinement simplex (tolerances
       default to 1e-7).
     - `chunk`: pixels per chunk of the normal-equation accumulation.
