@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
+from ._compile import jit
 from ._custom_types import SequenceLike
 
 from ._checks import as_float_array, check_positive_int, is_traced
@@ -235,7 +236,7 @@ def camera_rays(camera: Camera) -> tuple[Float[Array, "H W 3"], Float[Array, "H 
     return _camera_rays(_check_camera(camera))
 
 
-@eqx.filter_jit
+@jit
 def _camera_rays(camera):
     h, w = camera.height, camera.width
     # Every check is attached to the pose matrix, which feeds both outputs: a caller that keeps only
@@ -316,7 +317,7 @@ def look_at(
     return _look_at(eye, target, up)
 
 
-@eqx.filter_jit
+@jit
 def _look_at(eye, target, up):
     z = target - eye
     z = z / jnp.linalg.norm(z, axis=-1, keepdims=True)

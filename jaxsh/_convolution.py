@@ -9,12 +9,12 @@ $C_{lmpq} = \\Lambda_l^{-1} D^l_{mq}(\\alpha) e^{im\\beta} Y_{pq}(\\theta_o', \\
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact, Num, Real
 
+from ._compile import jit
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, coeff_layout
 from ._indexing import real_to_complex_matrix, sh_degrees
 from ._sh import _real_sh_flat, _unit_vectors
@@ -88,7 +88,7 @@ def irradiance(coeffs: Real[ArrayLike, "n_coeffs *C"], normals: Real[ArrayLike, 
     return _irradiance(coeffs.astype(dt), normals.astype(dt), lmax)
 
 
-@eqx.filter_jit
+@jit
 def _irradiance(coeffs, normals, lmax):
     c = coeffs if coeffs.ndim == 2 else coeffs[:, None]
     if lmax < 2:

@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._compile import jit
 from ._custom_types import SequenceLike
 
 from ._camera import Camera, _camera_rays, _check_camera, _require_finite, _require_positive, _scalar, _widest
@@ -126,7 +127,7 @@ def sphere_gbuffer(
     return _sphere_gbuffer(camera, center.astype(dt), radius.astype(dt))
 
 
-@eqx.filter_jit
+@jit
 def _sphere_gbuffer(camera, center, radius):
     radius = eqx.error_if(radius, ~((radius > 0.0) & jnp.isfinite(radius)), "sphere_gbuffer: `radius` must be finite and positive")
     center = eqx.error_if(center, ~jnp.all(jnp.isfinite(center)), "sphere_gbuffer: `center` must be finite")
@@ -234,7 +235,7 @@ def normal_map_gbuffer(camera: Camera, normals: Real[ArrayLike, "H W 3"], mask: 
     return _normal_map_gbuffer(camera, n.astype(dt), mask)
 
 
-@eqx.filter_jit
+@jit
 def _normal_map_gbuffer(camera, n, mask):
     raw2 = jnp.sum(n * n, axis=-1)
     raw = jnp.sqrt(jnp.where(raw2 > 0, raw2, 1.0))
@@ -289,7 +290,7 @@ def visibility_weighted_irradiance(
     return _contract(transfer.astype(dt), light.astype(dt))
 
 
-@eqx.filter_jit
+@jit
 def _contract(transfer, light):
     n = min(transfer.shape[-1], light.shape[0])
     return jnp.tensordot(transfer[..., :n], light[:n], axes=([-1], [0]))

@@ -85,11 +85,11 @@ from __future__ import annotations
 
 import math
 
-import equinox as eqx
 import jax.numpy as jnp
 from jax.scipy.special import erf
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from ._compile import jit
 from ._reflectance import _above, _dot, _fresnel_normalized, _half, _index, _positive, _prepare, _tan2_theta_h
 
 _PI = math.pi
@@ -149,7 +149,7 @@ def _microfacet(wi, wo, n, kd, ks, mu, sigma, dist):
     return jnp.where(valid, val, 0.0)
 
 
-_microfacet_jit = eqx.filter_jit(_microfacet)
+_microfacet_jit = jit(_microfacet)
 
 
 def _checked(wi, wo, n, kd, ks, mu, sigma):

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._compile import jit
 from ._checks import as_float_array, lmax_from_size
 from ._indexing import num_coeffs
 from ._lighting import directional_light_sh, disk_light_sh, split_disk_sources
@@ -379,7 +380,7 @@ def model_args(fname: str, brdf, lighting, legacy: tuple, legacy_kw: dict, light
     return TorranceSparrow(vals["kd"], vals["ks"], vals["mu"], vals["sigma"]), None, light
 
 
-@eqx.filter_jit
+@jit
 def _total_sh(lighting: Lighting, lmax: int):
     """`Lighting.total_sh` as one program (`lmax` static)."""
     return lighting._total_sh(lmax)

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._compile import jit
 from ._custom_types import SequenceLike
 
 from ._checks import check_dirs, check_positive_int
@@ -484,6 +485,6 @@ def practical_terms(
     return _practical_terms(n.astype(dt), v.astype(dt), slow, fdir, fen, *vis, bool(exact_fast_diffuse), chunk)
 
 
-@eqx.filter_jit
+@jit
 def _practical_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk):
     return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk)

@@ -49,6 +49,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._compile import jit
 from ._custom_types import SequenceLike
 
 from ._checks import as_float_array
@@ -122,7 +123,7 @@ def _distances(a, b, s):
     return _safe_sqrt(_sq_dist(a * s[None, :], b * s[None, :]))
 
 
-_scaled_distances_jit = eqx.filter_jit(_distances)
+_scaled_distances_jit = jit(_distances)
 
 
 def _widest(*arrays):
@@ -259,7 +260,7 @@ class RBFModel(eqx.Module):
         return out[0] if single else out
 
 
-@eqx.filter_jit
+@jit
 def _call(model, points):
     dt = points.dtype
     return _evaluate(
@@ -339,7 +340,7 @@ def _solve_core(centers, values, active, scale, smoothing, lo, hi):
     return _solve_saddle(centers, values, active, scale, smoothing, shift, pscale)
 
 
-_solve_jit = eqx.filter_jit(_solve_core)
+_solve_jit = jit(_solve_core)
 
 
 def rbf_check_samples(
@@ -538,7 +539,7 @@ def sbrdf_points(
     return jnp.concatenate([jnp.broadcast_to(xy.astype(dt), batch + (2,)), jnp.broadcast_to(q, batch + (3,))], axis=-1)
 
 
-@eqx.filter_jit
+@jit
 def _uvw_points(wi, wo, n):
     t, b = _frame(n)
     th, _, td, pd = _rusinkiewicz_local(_to_local(wi, t, b, n), _to_local(wo, t, b, n))

@@ -89,6 +89,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from ._compile import jit
 from ._checks import as_float_array, check_dirs
 
 _PI = math.pi
@@ -245,7 +246,7 @@ def _reflect(v, n):
     return 2.0 * _dot(n, v)[..., None] * n - v
 
 
-_reflect_jit = eqx.filter_jit(_reflect)
+_reflect_jit = jit(_reflect)
 
 
 def _frame(n):
@@ -313,7 +314,7 @@ def half_vector(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3
     return _half_vector(wi, wo)
 
 
-@eqx.filter_jit
+@jit
 def _half_vector(wi, wo):
     s = wi + wo
     return _safe_normalize(s, jnp.zeros_like(s))
@@ -409,7 +410,7 @@ def tangent_frame(
     return _tangent_frame(n, t)
 
 
-@eqx.filter_jit
+@jit
 def _tangent_frame(n, t):
     return _frame(n) if t is None else _frame_from_tangent(n, t)
 
@@ -477,7 +478,7 @@ def rusinkiewicz_angles(
     return _rusinkiewicz_angles(wi, wo, n, t)
 
 
-@eqx.filter_jit
+@jit
 def _rusinkiewicz_angles(wi, wo, n, t):
     tt, bb = _frame(n) if t is None else _frame_from_tangent(n, t)
     return _rusinkiewicz_local(_to_local(wi, tt, bb, n), _to_local(wo, tt, bb, n))
@@ -504,7 +505,7 @@ def rusinkiewicz_directions(
     return _rusinkiewicz_directions(th, ph, td, pd)
 
 
-@eqx.filter_jit
+@jit
 def _rusinkiewicz_directions(th, ph, td, pd):
     st, ct = jnp.sin(td), jnp.cos(td)
     dx, dy, dz = st * jnp.cos(pd), st * jnp.sin(pd), ct
@@ -548,7 +549,7 @@ def _uvw(th, pd, td):
     return jnp.stack([s * jnp.cos(2.0 * pd), s * jnp.sin(2.0 * pd), (2.0 / _PI) * td], axis=-1)
 
 
-_uvw_jit = eqx.filter_jit(_uvw)
+_uvw_jit = jit(_uvw)
 
 
 def uvw_from_directions(
@@ -567,7 +568,7 @@ def uvw_from_directions(
     return _uvw_from_directions(wi, wo, n)
 
 
-@eqx.filter_jit
+@jit
 def _uvw_from_directions(wi, wo, n):
     t, b = _frame(n)
     th, _, td, pd = _rusinkiewicz_local(_to_local(wi, t, b, n), _to_local(wo, t, b, n))
@@ -590,7 +591,7 @@ def local_directions(
     return _local_directions(ti, to, dp)
 
 
-@eqx.filter_jit
+@jit
 def _local_directions(ti, to, dp):
     si = jnp.sin(ti)
     so = jnp.sin(to)
@@ -642,8 +643,8 @@ def _fresnel_normalized(c, mu):
     return jnp.where(ok, ratio, jnp.where(f0 > 0.0, 1.0 / safe_f0, 1.0))
 
 
-_fresnel_jit = eqx.filter_jit(_fresnel)
-_fresnel_normalized_jit = eqx.filter_jit(_fresnel_normalized)
+_fresnel_jit = jit(_fresnel)
+_fresnel_normalized_jit = jit(_fresnel_normalized)
 
 
 def fresnel_dielectric(cos_theta: Real[ArrayLike, "*#batch"], mu: Real[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
@@ -732,7 +733,7 @@ def lambertian(
     return _lambertian(wi, wo, n, p["kd"])
 
 
-@eqx.filter_jit
+@jit
 def _lambertian(wi, wo, n, kd):
     valid = (_dot(wi, n) > 0.0) & (_dot(wo, n) > 0.0)
     return jnp.where(valid, kd, 0.0)
@@ -780,7 +781,7 @@ def phong(
     return _phong(wi, wo, n, p["s"], True)
 
 
-@eqx.filter_jit
+@jit
 def _phong(wi, wo, n, s, divide):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     rl = 2.0 * ci * co - _dot(wi, wo)
@@ -827,7 +828,7 @@ def torrance_sparrow(
     return _torrance_sparrow(wi, wo, n, p["kd"], p["ks"], p.get("mu"), p["sigma"])
 
 
-@eqx.filter_jit
+@jit
 def _torrance_sparrow(wi, wo, n, kd, ks, mu, sigma):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     theta_h_sq = _theta_h_sq(*_half_angle_parts(wi + wo, n))
@@ -875,7 +876,7 @@ def cook_torrance(
     return _cook_torrance(wi, wo, n, p["kd"], p["ks"], p["m"], p["mu"])
 
 
-@eqx.filter_jit
+@jit
 def _cook_torrance(wi, wo, n, kd, ks, m, mu):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     h = _half(wi, wo)
@@ -915,7 +916,7 @@ def ward_isotropic(
     return _ward(wi, wo, n, p["rho_d"], p["rho_s"], p["alpha"])
 
 
-@eqx.filter_jit
+@jit
 def _ward(wi, wo, n, rd, rs, al):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     tan2, _ = _tan2_theta_h(_half(wi, wo), n)
@@ -955,7 +956,7 @@ def oren_nayar(
     return _oren_nayar(wi, wo, n, p["albedo"], p["sigma"])
 
 
-@eqx.filter_jit
+@jit
 def _oren_nayar(wi, wo, n, a, sg):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     s2 = sg * sg
@@ -993,7 +994,7 @@ def lafortune(
     return _lafortune(wi, wo, n, p["kd"], p["lobes"])
 
 
-@eqx.filter_jit
+@jit
 def _lafortune(wi, wo, n, kd, lobes):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     zz = ci * co

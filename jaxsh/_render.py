@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
+from ._compile import jit
 from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import as_float_array, check_dirs, check_positive_int
@@ -279,7 +280,7 @@ def _choose_table(method, lighting, sigma, npx: int) -> int | None:
 
 # Two programs, not one: with the terms materialized by the first, XLA does not re-fuse (and
 # recompute) the table lookup and the shared per-pixel terms into each of the four outputs.
-@eqx.filter_jit
+@jit
 def _terms(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows):
     if mask is not None:  # pixels outside the mask look along +z (a valid direction) and render as 0
         up = jnp.asarray([0.0, 0.0, 1.0], n.dtype)
@@ -289,7 +290,7 @@ def _terms(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fa
     return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, 8192, table)
 
 
-@eqx.filter_jit
+@jit
 def _combine(terms, mask, kd, ks, mu, sigma):
     out = terms.components(kd, ks, mu, sigma)
     if mask is not None:
@@ -470,7 +471,7 @@ def render_reference(
     return out.reshape(batch + (c,))
 
 
-@eqx.filter_jit
+@jit
 def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, rho=torrance_sparrow):
     npx = n.shape[0]
     pad = (-npx) % chunk if npx > chunk else 0

@@ -45,12 +45,12 @@ from __future__ import annotations
 import functools
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
+from ._compile import jit
 from ._checks import as_float_array, check_lmax, coeff_layout
 from ._indexing import real_to_complex_matrix
 
@@ -211,7 +211,7 @@ def wigner_D(
     return _wigner_D(R, lmax, real)
 
 
-@eqx.filter_jit
+@jit
 def _wigner_D(R, lmax, real):
     blocks = _real_blocks(R, lmax)
     if real:
@@ -275,7 +275,7 @@ def rotate_sh(
     return out if axis == -2 else out[..., 0]
 
 
-@eqx.filter_jit
+@jit
 def _rotate(c, R, lmax, batch):
     # c (..., n, C), R (..., 3, 3); flattened to (N, n, C) and (N, 3, 3).
     n, C = c.shape[-2:]
@@ -541,7 +541,7 @@ def wigner_d_y(beta: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*bat
     return _wigner_d_y(beta, lmax)
 
 
-@eqx.filter_jit
+@jit
 def _wigner_d_y(beta, lmax):
     z = jnp.zeros_like(beta)
     d = _wigner_D(rotation_from_euler_zyz(z, beta, z), lmax, False)

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
+from ._compile import jit
 from ._checks import check_dirs, check_lmax, check_nonzero_dirs
 from ._indexing import sh_degrees, sh_orders
 
@@ -401,7 +402,7 @@ def real_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Float[Array, "*batc
     return _real_sh_jit(dirs, lmax)
 
 
-@eqx.filter_jit
+@jit
 def _real_sh_jit(dirs, lmax):
     batch = dirs.shape[:-1]
     flat = dirs.reshape(-1, 3)
@@ -444,6 +445,6 @@ def complex_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Complex[Array, "
     return _complex_sh_jit(dirs, lmax)
 
 
-@eqx.filter_jit
+@jit
 def _complex_sh_jit(dirs, lmax):
     return _complex_from_real(_real_sh_jit(dirs, lmax), lmax)

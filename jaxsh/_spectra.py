@@ -13,13 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from ._compile import jit
 from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, check_values
 
 
@@ -91,7 +91,7 @@ def phong_spectrum(s: Real[ArrayLike, "*batch"], lmax: int) -> Float[Array, "*ba
     return _phong_spectrum(s, lmax)
 
 
-@eqx.filter_jit
+@jit
 def _phong_spectrum(s, lmax):
     l = jnp.arange(lmax + 1, dtype=s.dtype).reshape((1,) * s.ndim + (-1,))
     sb = s[..., None]

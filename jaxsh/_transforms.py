@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from ._compile import jit
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_positive_int, coeff_layout
 from ._grids import fejer1_weights, latlong_angles
 from ._indexing import sh_degrees, sh_orders
@@ -203,7 +204,7 @@ def _row_dft_matmul(f, lmax: int):
     return jax.lax.map(row, f.reshape(h, big_r, b * c))
 
 
-@eqx.filter_jit
+@jit
 def _project(image, lmax):
     squeeze = image.ndim == 2
     f = image[..., None] if squeeze else image
@@ -276,7 +277,7 @@ def synthesize_latlong(
     return _synthesize(coeffs, lmax, h, w)
 
 
-@eqx.filter_jit
+@jit
 def _synthesize(coeffs, lmax, h, w):
     squeeze = coeffs.ndim == 1
     c = coeffs[:, None] if squeeze else coeffs
@@ -375,7 +376,7 @@ def fit_sh(
     return _fit_sh(dirs.astype(dtype), values.astype(dtype), lmax, weights, jnp.asarray(ridge, dtype))
 
 
-@eqx.filter_jit
+@jit
 def _fit_sh(dirs, values, lmax, weights, ridge):
     squeeze = values.ndim == 1
     v = values[:, None] if squeeze else values

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -276,7 +275,7 @@ def _rows_of(terms, idx):
                                                    terms.theta_h, terms.fast_weight)), terms.fast_energy)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, max_steps, rtol, atol, search=None):
     dt = b.dtype
     nobs = jnp.sum((w > 0).astype(dt)) * b.shape[1]

@@ -148,7 +148,7 @@ def fit_brdf_sh(
     return finish(_fit_brdf_sh(obs, L, lmax, jnp.asarray(np.nonzero(valid)[0]), rcond), throw)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _fit_brdf_sh(obs, L, lmax, cols, rcond):
     per_view = L.ndim == 3  # (K, n, C): one lighting per view
     if per_view:

@@ -267,7 +267,7 @@ def find_source(
     return _find_source(coeffs, check_region(region, h, dt), h, lmax)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _find_source(coeffs, region, h: int, lmax: int) -> SourceEstimate:
     """`find_source` after its checks: one compiled program (`h`, `lmax` static)."""
     dt = coeffs.dtype
@@ -284,7 +284,7 @@ def _lobe(sigma, theta):
     return jnp.exp(-(theta**2) / (4 * sigma**2)) / (4 * jnp.pi * sigma**2)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _source_in_image(img, covered, region) -> SourceEstimate:
     """eq. 26 on a dual lighting image `(H, W, C)` (`inverse_lighting_dual`): `_source_on_map` with the
     covered texels only (uncovered ones hold the l <= 2 field), the brightest texel's value as the peak,
@@ -596,7 +596,7 @@ def _dual_stage1(obs, ks, mu, h, lmax, rcond):
     return dual, _Stage1(coeffs, Lighting(coeffs), dual.status, dual.rms, dual.rel_rms, {"n_obs": dual.stats["n_obs"]})
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _mu_candidates(sub, t, lmax, chunk, rcond):
     """Profiled relative RSS (best ks per channel) for each candidate log(mu - 1)."""
     dt = sub.values.dtype
@@ -615,12 +615,12 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
 _TABLE_BYTES = 512 * 2**20
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _mirror_table_jit(o: Observations, lmax: int) -> MirrorTable:
     return mirror_table(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, lmax)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _mu_candidates_table(tab: MirrorTable, t, lmax, rcond):
     """`_mu_candidates` from the subset's `MirrorTable`: the blocks of every candidate by `grams_at_mus`."""
     g = grams_at_mus(tab, 1.0 + jnp.exp(t), lmax)
@@ -640,7 +640,7 @@ def _blocks_from_table(tab: MirrorTable, mu, lmax: int, rcond) -> _Blocks:
     return _Blocks(g, pinv_psd(g.ss[9:, 9:], rcond))
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _stage1_final(obs, tab_obs, tab_sub, mu, lmax, chunk, rcond):
     """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there, and the blocks at mu on all
     pixels and on the subset, which the refinement reuses. `tab_obs`: the `MirrorTable` of all pixels (the
@@ -760,13 +760,13 @@ def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
     return int(np.nanargmin(rss)) if np.any(np.isfinite(rss)) else 0
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _column_rss(jt, fvis, mu, ks, d, sigma, lmax):
     jt = dataclasses.replace(jt, fvis=fvis)
     return jnp.sum(_joint_rss(jt, _source_parts(jt, mu, d), ks, sigma, lmax)[0])
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _Joint:
     """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH)."""
     f = tab.s_scale if mu is None else tab.s_scale * jaxsh.fresnel_normalized(tab.cos_o, mu)
@@ -774,7 +774,7 @@ def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _
     return _Joint(bl, rows, o.weights, o.values, o.normals, o.views, None)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _joint_jit(o, bl, mu, lmax, chunk, rcond, column):
     return _joint(o, bl, mu, lmax, chunk, rcond, column)
 
@@ -783,7 +783,7 @@ def _unpack(p, c):
     return jax.nn.sigmoid(p[:c]), jnp.exp(p[c])
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     c = ks0.shape[0]
 
@@ -832,7 +832,7 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
     return jnp.concatenate([top, jnp.concatenate([h_ks, h_ss[None]])[None, :]], 0)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _refine_final(jt, p, mu, d, lmax, status, its):
     c = jt.b.shape[1]
     ks, sigma = _unpack(p, c)

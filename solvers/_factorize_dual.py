@@ -117,7 +117,7 @@ def golden_ks_unit(rss, dt, rtol: float, atol: float, max_steps: int):
     return jnp.where(f_hi < f, 1.0, ks), jnp.minimum(f_hi, f), sol.stats["num_steps"]
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _mu_candidates_dual(sub: Observations, t, height: int):
     """Profiled relative dual RSS (best K_s per channel) for each candidate log(mu - 1)."""
 
@@ -129,7 +129,7 @@ def _mu_candidates_dual(sub: Observations, t, height: int):
     return jax.lax.map(one, t)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _stage1_final_dual(obs: Observations, mu, height: int):
     """K_s per channel at the chosen mu, on all pixels: `ks (C,)`, `num_steps (C,)`."""
     mo = _dual_moments(obs, mu, height)

@@ -27,7 +27,6 @@ import os
 import sys
 import time
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -313,7 +312,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     return result
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _eval_terms(terms, kd, ks, mu, sigma):
     """Eq. 24 from the fit's own terms as one program (not op by op)."""
     return terms(kd, ks, mu, sigma)

@@ -43,7 +43,6 @@ projection, so consistency holds by construction.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -180,7 +179,7 @@ def inverse_lighting(
     return finish(res, throw)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, chunk, literal=False):
     filt = None
     if deconvolve:
@@ -397,7 +396,7 @@ def _diffuse_l2(d, wv, b, kd, rcond):
     return jnp.where(ok[None, :], x / jnp.where(ok, kd, 1.0)[None, :], 0.0)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol, rcond):
     t_count = h * 2 * h
     f, tex, d, wv, y9, omega, b = _dual_pieces(obs, kd, ks, mu, h)

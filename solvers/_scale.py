@@ -44,11 +44,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+import jaxsh
 
 from ._brdf import BRDFResult, _fit_brdf
 from ._data import Lighting, Observations, practical_terms_for, view_lightings
@@ -167,7 +168,7 @@ def _fit_one(args, u_grid, fresnel, refine, max_steps, rtol, atol):
     return _fit_brdf(t, b, w, None, u_grid, 0, fresnel, None, refine, max_steps, rtol, atol)
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _fit_batch(terms, b, w, u_grid, fresnel, refine, max_steps, rtol, atol, blocks):
     """The fits of a stack of captures: `vmap`ped (`blocks` False), or, with `(D, m, ...)` inputs sharded over
     `D` devices (`blocks` True), `vmap`ped over the device axis and one member at a time (`lax.map`) within a block.

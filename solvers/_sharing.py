@@ -122,7 +122,7 @@ class _GreedyState(eqx.Module):
     rss: Float[Array, ""]
 
 
-@eqx.filter_jit
+@jaxsh.jit
 def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, tol, spread, n_centers: int, n_add: int,
             n_rounds: int, chunk: int):
     n, d = points.shape

@@ -1,0 +1,104 @@
+"""How jaxsh's programs are compiled: `jit` and the XLA options it passes (`compile_options`).
+
+A user's first call is mostly XLA compilation (issue 13, docs/performance.md). On the CPU, XLA
+compiles its elementwise fusions either with its MLIR "fusion emitters" (the default of recent
+jaxlib) or with its older LLVM IR emitters. For jaxsh's programs the older emitters compile
+30-40 % faster and run as fast: measured on a 2-core machine, interleaved runs,
+`solvers.fit_brdf`'s program 3.3-3.6 s → 2.0-2.1 s of compilation, the first `solvers.factorize`
+call 20-22 s → 15 s, the first exact `render_practical` 2.6-2.8 s → 1.7-1.9 s, with warm times
+within the run-to-run noise (real_sh, project_latlong, render_practical, fit_brdf, factorize).
+
+These are options of each compiled program (`jax.jit(..., compiler_options=...)`), not of the
+process: nothing global changes, and a program the user jits is compiled as the user says.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+# the option and the value jaxsh compiles with (see the module docstring)
+_WANTED = {"xla_cpu_use_fusion_emitters": False}
+
+
+@functools.lru_cache(maxsize=None)
+def _probed_options() -> tuple[tuple[str, Any], ...]:
+    flags = os.environ.get("XLA_FLAGS", "")
+    out = []
+    for name, value in _WANTED.items():
+        if name in flags:  # the user chose it for the process: theirs wins
+            continue
+        try:  # this jax/jaxlib knows the option (older ones do not have it; newer ones may drop it)
+            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(np.float32(0)).compile()
+        except Exception:  # noqa: BLE001 - any failure means: compile without the option
+            continue
+        out.append((name, value))
+    return tuple(out)
+
+
+def compile_options() -> dict[str, Any]:
+    """The XLA compile options of jaxsh's jitted programs (a new dict; empty when none apply).
+
+    `{"xla_cpu_use_fusion_emitters": False}` where the installed jaxlib has the option: XLA's
+    LLVM IR emitters compile jaxsh's programs 30-40 % faster than its MLIR fusion emitters and the
+    programs run as fast (docs/performance.md, "First calls"). The option is left out when
+    `XLA_FLAGS` names it (the process's setting then applies) or when this jaxlib rejects it;
+    checked once per process, at the first call of a jaxsh program, by compiling a one-line
+    program. Pass the result to your own `jax.jit(..., compiler_options=...)` to compile a
+    pipeline around jaxsh the same way, or use `jaxsh.jit`.
+    """
+    return dict(_probed_options())
+
+
+class _LazyJit:
+    """`eqx.filter_jit(fun)`, compiled with `compile_options()` when it is the outermost program.
+
+    JAX accepts compile options on a top-level `jax.jit` only: a call made while another function
+    is being traced (the caller's own `jax.jit`, or a jaxsh program calling another) is staged
+    into the caller's program, which is compiled as the caller says. Both versions are built at
+    the first call, so that importing jaxsh initializes no backend and compiles nothing."""
+
+    def __init__(self, fun, kwargs):
+        self._fun = fun
+        self._kwargs = kwargs
+        self._plain = None
+        self._tuned = None
+        functools.update_wrapper(self, fun)
+
+    def _versions(self):
+        if self._plain is None:
+            opts = compile_options()
+            self._tuned = eqx.filter_jit(self._fun, compiler_options=opts, **self._kwargs) if opts else None
+            self._plain = eqx.filter_jit(self._fun, **self._kwargs)
+        return self._plain, self._tuned
+
+    def __call__(self, *args, **kwargs):
+        plain, tuned = self._versions()
+        if tuned is None or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
+            return plain(*args, **kwargs)
+        try:
+            return tuned(*args, **kwargs)
+        except ValueError as e:  # staged into a caller's trace with constant arguments only
+            if "compiler_options" not in str(e):
+                raise
+            return plain(*args, **kwargs)
+
+    def lower(self, *args, **kwargs):
+        plain, tuned = self._versions()
+        return (tuned or plain).lower(*args, **kwargs)
+
+
+def jit(fun=None, **kwargs):
+    """`equinox.filter_jit` (arrays traced, everything else static) compiled with `compile_options()`.
+
+    Usable as `@jaxsh.jit`, `jaxsh.jit(f)` or `jaxsh.jit(donate="all")(f)`; `kwargs` are those of
+    `equinox.filter_jit`. Every jitted program of jaxsh and of `solvers` is made this way.
+    """
+    if fun is None:
+        return functools.partial(jit, **kwargs)
+    return _LazyJit(fun, kwargs)

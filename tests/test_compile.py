@@ -1,0 +1,103 @@
+"""`jaxsh.jit` / `jaxsh.compile_options`: jaxsh's programs compiled with their own XLA options.
+
+What is promised (jaxsh/_compile.py): the option is used only where this jaxlib accepts it and the
+user's `XLA_FLAGS` do not name it; a program compiled with it computes what the plain `jax.jit`
+computes; a jaxsh program called inside the caller's own `jit`, `grad`, `vmap` or `lax.map` is staged
+into the caller's program (JAX refuses compile options on a nested jit). The speed is measured in
+`benchmarks/` (docs/performance.md), not here.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.special
+
+import jaxsh
+from jaxsh import _compile
+
+
+@pytest.fixture
+def fresh_probe(monkeypatch):
+    """Forget the per-process probe before and after the test."""
+    _compile._probed_options.cache_clear()
+    yield monkeypatch
+    _compile._probed_options.cache_clear()
+
+
+def _accepts(name, value):
+    try:
+        jax.jit(lambda x: x * 2, compiler_options={name: value}).lower(np.float32(1)).compile()
+        return True
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def test_options_are_the_accepted_ones(fresh_probe):
+    fresh_probe.delenv("XLA_FLAGS", raising=False)
+    opts = jaxsh.compile_options()
+    want = {k: v for k, v in _compile._WANTED.items() if _accepts(k, v)}
+    assert opts == want
+    opts["xla_cpu_use_fusion_emitters"] = True  # a copy: the caller cannot change jaxsh's options
+    assert jaxsh.compile_options() == want
+
+
+def test_rejected_option_is_left_out(fresh_probe):
+    fresh_probe.delenv("XLA_FLAGS", raising=False)
+    fresh_probe.setattr(_compile, "_WANTED", {"xla_no_such_option_for_jaxsh": True, **_compile._WANTED})
+    assert "xla_no_such_option_for_jaxsh" not in jaxsh.compile_options()
+    # and a program still compiles and runs
+    f = jaxsh.jit(lambda x: jnp.sin(x) + 1.0)
+    np.testing.assert_allclose(f(jnp.asarray([0.5, 1.5])), np.sin([0.5, 1.5]) + 1.0, rtol=1e-15)
+
+
+def test_xla_flags_naming_the_option_win(fresh_probe):
+    fresh_probe.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert "xla_cpu_use_fusion_emitters" not in jaxsh.compile_options()
+
+
+def test_tuned_program_computes_what_plain_jit_does():
+    # a fused elementwise chain, a reduction and a loop, in both dtypes, against scipy where it can
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(257, 3))
+    for dt, tol in ((np.float64, 1e-13), (np.float32, 2e-6)):
+        x = jnp.asarray(d, dt)
+        ours = jaxsh.real_sh(x, 6)
+        plain = eqx.filter_jit(lambda v: jaxsh.real_sh(v, 6))(x)
+        assert ours.dtype == dt
+        np.testing.assert_allclose(np.asarray(ours), np.asarray(plain), atol=tol, rtol=0)
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    theta, phi = np.arccos(u[:, 2]), np.arctan2(u[:, 1], u[:, 0])
+    ref = scipy.special.sph_harm_y(4, 0, theta, phi).real  # Y_{4,0} is real
+    np.testing.assert_allclose(np.asarray(jaxsh.real_sh(jnp.asarray(d), 4))[:, 20], ref, atol=1e-13)
+
+
+def test_nested_in_callers_transformations():
+    d = np.random.default_rng(0).normal(size=(5, 3))
+    direct = np.asarray(jaxsh.real_sh(d, 3))
+    # traced argument inside the caller's jit
+    np.testing.assert_allclose(jax.jit(lambda v: jaxsh.real_sh(v, 3))(d), direct, rtol=1e-14)
+    # constant argument inside the caller's jit (no tracer among the arguments)
+    np.testing.assert_allclose(jax.jit(lambda s: jaxsh.real_sh(d, 3) * s)(2.0), 2 * direct, rtol=1e-14)
+    np.testing.assert_allclose(jax.vmap(lambda v: jaxsh.real_sh(v, 3))(d[None])[0], direct, rtol=1e-14)
+    np.testing.assert_allclose(jax.lax.map(lambda v: jaxsh.real_sh(v, 3), d), direct, rtol=1e-14)
+    # gradient of sum(Y_{1,0}) = sum(c z/|d|) against the closed form c (e_z - z d/|d|^2)/|d|
+    c = np.sqrt(3 / (4 * np.pi))
+    g = jax.grad(lambda v: jaxsh.real_sh(v, 1)[:, 2].sum())(jnp.asarray(d))
+    r = np.linalg.norm(d, axis=1, keepdims=True)
+    want = c * (np.array([0, 0, 1.0]) - d[:, 2:3] * d / r**2) / r
+    np.testing.assert_allclose(g, want, rtol=1e-12)
+
+
+def test_jit_decorator_forms():
+    @jaxsh.jit
+    def f(x, n):
+        return x**n
+
+    g = jaxsh.jit(donate="none")(lambda x: x + 1)
+    assert float(f(jnp.asarray(3.0), 2)) == 9.0  # `n`: a Python int, static (filter_jit's rule)
+    assert float(g(jnp.asarray(1.0))) == 2.0
+    assert f.__name__ == "f"
+    low = f.lower(jnp.asarray(3.0), 3)
+    assert float(low.compile()(jnp.asarray(2.0), 3)) == 8.0
