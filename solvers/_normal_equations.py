@@ -49,8 +49,8 @@ import jaxsh
 class Gram(eqx.Module):
     """Sums over pixels of the two row blocks d (diffuse, 9 columns) and s (specular, n columns) of eq. 25.
 
-    The fields are arrays; a `Gram` of `int | None` is also the `jax.vmap` axis spec of one
-    (`solvers._factorize._channel_blocks`), hence the annotations.
+    The fields are arrays; a `Gram` of `int | None` can also serve as the `jax.vmap` axis spec of one,
+    hence the annotations.
     """
 
     dd: jax.Array | int | None  # (9, 9)
@@ -231,12 +231,18 @@ def eig_solve(ata, atb, bb, count, rcond, ridge):
     return x, se, determined, sv, rss, jnp.sum(keep, -1)
 
 
-def pinv_psd(a, rcond):
-    """Pseudo-inverse of a symmetric PSD matrix by eigendecomposition (eigenvalues < `rcond`·max dropped)."""
+def pinv_psd(a, rcond, half: bool = False):
+    """Pseudo-inverse of a symmetric PSD matrix by eigendecomposition (eigenvalues < `rcond`·max dropped).
+
+    With `half`, also its square-root factor $H = \\Lambda_+^{-1/2}V^T$ (rows of dropped eigenpairs zero):
+    $\\mathrm{pinv} = H^TH$. Returns `pinv` or `(pinv, H)`."""
     evals, evecs = jnp.linalg.eigh(a)
     keep = evals > rcond * jnp.max(evals)
     inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
-    return (evecs * inv[..., None, :]) @ jnp.swapaxes(evecs, -1, -2)
+    p = (evecs * inv[..., None, :]) @ jnp.swapaxes(evecs, -1, -2)
+    if not half:
+        return p
+    return p, jnp.sqrt(inv)[..., :, None] * jnp.swapaxes(evecs, -1, -2)
 
 
 def covariance_from_jacobian(J, rss, nobs, n_par):

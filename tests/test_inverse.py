@@ -271,6 +271,43 @@ def test_gram_blocks_at_many_mu_by_quadrature_equal_the_direct_sums(rng):
                 assert np.max(np.abs(got - want)) <= 1e-13 * np.max(np.abs(want)), field  # measured <= 2.4e-15
 
 
+def test_golden_ks_rss_from_fixed_parts_equals_the_dense_least_squares(rng):
+    # `_golden_ks` evaluates the eq.-25 RSS from K_s-independent 9x9 parts (`_golden_parts`, `_reduced_rss`);
+    # the reference is the dense least-squares problem over all n coefficients, solved by NumPy: the data
+    # b_i ~ K_d d_i.L + K_s s_i.(f o L), normal matrix A = M^T G M with M = [K_d I_9 0; K_s diag(f)], RSS =
+    # bb - r^T A^-1 r. A general filter f (not ones) and three K_s, two channels; also the old block elimination.
+    from solvers import _factorize as F
+    from solvers._normal_equations import accumulate_gram, pinv_psd
+
+    n_px, lmax = 3000, 6
+    nc = (lmax + 1) ** 2
+    n = rng.normal(size=(n_px, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = rng.normal(size=(n_px, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    b, w = rng.uniform(size=(n_px, 2)), rng.uniform(0.5, 1.0, size=n_px)
+    g = jax.jit(accumulate_gram, static_argnums=(8, 9))(*(jnp.asarray(a) for a in (n, v, b, w)), None, None,
+                                                        jnp.asarray(1.6), None, lmax, 1024)
+    bl = F._Blocks(g, *pinv_psd(g.ss[9:, 9:], 1e-12, half=True))
+    filt = jnp.asarray(np.exp(-((0.15 * jaxsh.sh_degrees(lmax)) ** 2)))
+    parts = F._golden_parts(bl, filt)
+    gram = np.block([[np.asarray(g.dd), np.asarray(g.ds)], [np.asarray(g.ds).T, np.asarray(g.ss)]])
+    rhs = np.concatenate([np.asarray(g.db), np.asarray(g.sb)])  # (9 + n, C)
+    assert np.linalg.cond(np.asarray(g.ss)) < 1e8  # well posed: the dense solve is a reference
+    for ks in (0.05, 0.4, 0.93):
+        kd = 1.0 - ks
+        m = np.vstack([kd * np.eye(9, nc), ks * np.diag(np.asarray(filt))])
+        a, r = m.T @ gram @ m, m.T @ rhs
+        want = np.asarray(g.bb) - np.sum(r * np.linalg.solve(a, r), 0)
+        got = np.array([float(F._reduced_rss(jax.tree_util.tree_map(lambda x: x[c], parts), jnp.asarray(ks)))
+                         for c in range(2)])
+        old = np.asarray(F._schur_rss(bl, jnp.full(2, kd), jnp.full(2, ks), filt)[0])
+        scale = np.asarray(g.bb)
+        assert np.all(want > 0.01 * scale)  # a residual, not the data: the comparison sees the fit
+        assert np.max(np.abs(got - want) / scale) <= 1e-13, (ks, got, want)  # measured <= 2.0e-15
+        assert np.max(np.abs(old - want) / scale) <= 1e-13, (ks, old, want)  # measured <= 1.8e-15
+
+
 def test_factorize_from_the_table_equals_the_direct_sums_end_to_end(obs_noisy, factorization, monkeypatch):
     # a capture smaller than `search_pixels`: the table of all pixels serves the mu search, the final stage-1
     # blocks and the refinement's rows (the fixture); the reference forms them all by direct sums
@@ -301,7 +338,7 @@ def test_factorize_mu_search_from_the_table_equals_the_direct_search(obs_noisy):
     t = jnp.asarray(np.linspace(np.log(0.05), np.log(2.5), 9))
     via_table = np.asarray(F._mu_candidates_table(F._mirror_table_jit(sub, 12), t, 12, 1e-12))
     direct = np.asarray(F._mu_candidates(sub, t, 12, 4096, 1e-12))
-    np.testing.assert_allclose(via_table, direct, rtol=1e-9)  # measured 1.6e-10
+    np.testing.assert_allclose(via_table, direct, rtol=1e-10)  # measured 1.4e-11
     assert np.ptp(direct) > 0.1 * np.max(direct)  # the candidates differ: the comparison can see a wrong mu
 
 
