@@ -387,7 +387,7 @@ def main():
 
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__} on {jax.devices()[0].platform}, numpy {np.__version__}, "
           f"scipy {scipy.__version__}, Python {platform.python_version()}, {os.cpu_count()} CPUs, "
-          f"{psutil.virtual_memory().total / 2**30:.0f} GiB RAM")
+          f"{psutil.virtual_memory().total / 2**30:.0f} GiB RAM; jaxsh compile options {jaxsh.compile_options()}")
     print(f"load average at start: {os.getloadavg()}")
     t_all = time.perf_counter()
     t0 = time.perf_counter()

@@ -431,7 +431,8 @@ def main(argv=None):
 
     print("jaxsh convolution benchmark" + (" (--quick)" if args.quick else ""))
     print(f"  python {platform.python_version()}, {platform.machine()}, {os.cpu_count()} CPUs, "
-          f"jax {jax.__version__} ({jax.default_backend()}), x64 enabled by this script")
+          f"jax {jax.__version__} ({jax.default_backend()}), x64 enabled by this script, "
+          f"jaxsh compile options {jaxsh.compile_options()}")
     print(f"  jaxsh {jaxsh.__version__}, numpy {np.__version__}, scipy {scipy.__version__}")
     print(f"  load average at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"  real SH l<=2 vs R&H's printed polynomials (sign convention check): max diff {sign_err:.1e}")

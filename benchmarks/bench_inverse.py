@@ -517,7 +517,7 @@ def main():
     size = 64 if args.quick else args.size
     reps = 1 if args.quick else 3
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, scipy {scipy.__version__}, "
-          f"Python {platform.python_version()}, {os.cpu_count()} CPUs")
+          f"Python {platform.python_version()}, {os.cpu_count()} CPUs; jaxsh compile options {jaxsh.compile_options()}")
     try:
         print(f"load average at start: {os.getloadavg()}")
     except OSError:

@@ -263,7 +263,8 @@ def main():
     args = ap.parse_args()
     q = args.quick
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, trimesh {trimesh.__version__}, "
-          f"Python {platform.python_version()}, {os.cpu_count()} CPUs, embree = {jaxsh.embree_available()}")
+          f"Python {platform.python_version()}, {os.cpu_count()} CPUs, embree = {jaxsh.embree_available()}; "
+          f"jaxsh compile options {jaxsh.compile_options()}")
     try:
         print(f"load average at start: {os.getloadavg()}")
     except OSError:

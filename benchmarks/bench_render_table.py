@@ -123,7 +123,7 @@ def main():
     args = ap.parse_args()
     size = 256 if args.quick else 512
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, Python {platform.python_version()}, "
-          f"{os.cpu_count()} CPUs")
+          f"{os.cpu_count()} CPUs; jaxsh compile options {jaxsh.compile_options()}")
     try:
         print(f"load average at start: {os.getloadavg()}")
     except OSError:

@@ -659,7 +659,8 @@ def main(argv=None):
 
     print("jaxsh benchmark" + (" (--quick)" if args.quick else ""))
     print(f"  python {platform.python_version()}, {platform.machine()}, {os.cpu_count()} CPUs, "
-          f"jax {jax.__version__} ({jax.default_backend()}), x64 enabled by this script")
+          f"jax {jax.__version__} ({jax.default_backend()}), x64 enabled by this script, "
+          f"jaxsh compile options {jaxsh.compile_options()}")
     print(f"  jaxsh {jaxsh.__version__}, sphericart {ver(sphericart)}, e3nn-jax {ver(e3nn)}, "
           f"ducc0 {ver(ducc0)}, s2fft {ver(s2fft)}, pyshtools {ver(pyshtools)}")
     print(f"  load average at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())}")

@@ -3,10 +3,12 @@
 A user's first call is mostly XLA compilation (issue 13, docs/performance.md). On the CPU, XLA
 compiles its elementwise fusions either with its MLIR "fusion emitters" (the default of recent
 jaxlib) or with its older LLVM IR emitters. For jaxsh's programs the older emitters compile
-30-40 % faster and run as fast: measured on a 2-core machine, interleaved runs,
-`solvers.fit_brdf`'s program 3.3-3.6 s → 2.0-2.1 s of compilation, the first `solvers.factorize`
-call 20-22 s → 15 s, the first exact `render_practical` 2.6-2.8 s → 1.7-1.9 s, with warm times
-within the run-to-run noise (real_sh, project_latlong, render_practical, fit_brdf, factorize).
+faster and the programs run as fast: measured on a 2-core machine, interleaved runs,
+`solvers.fit_brdf`'s program 3.3-3.6 s → 2.0-2.1 s of compilation (-40 %), the first
+`solvers.fit_brdf` call on 3×256² 7.7-8.8 s → 5.7-5.8 s, the first `solvers.factorize` call
+20-22 s → 15 s (-30 %), the first exact `render_practical` 2.6-2.8 s → 1.7-1.9 s, two test files
+of the suite 242 s → 184 s (-24 %); warm times within the run-to-run noise (real_sh,
+project_latlong, render_practical, fit_brdf, factorize). docs/performance.md has the table.
 
 These are options of each compiled program (`jax.jit(..., compiler_options=...)`), not of the
 process: nothing global changes, and a program the user jits is compiled as the user says.
@@ -45,7 +47,7 @@ def compile_options() -> dict[str, Any]:
     """The XLA compile options of jaxsh's jitted programs (a new dict; empty when none apply).
 
     `{"xla_cpu_use_fusion_emitters": False}` where the installed jaxlib has the option: XLA's
-    LLVM IR emitters compile jaxsh's programs 30-40 % faster than its MLIR fusion emitters and the
+    LLVM IR emitters compile jaxsh's programs 25-40 % faster than its MLIR fusion emitters and the
     programs run as fast (docs/performance.md, "First calls"). The option is left out when
     `XLA_FLAGS` names it (the process's setting then applies) or when this jaxlib rejects it;
     checked once per process, at the first call of a jaxsh program, by compiling a one-line
