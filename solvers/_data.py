@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, Real
@@ -24,6 +25,12 @@ import jaxsh
 from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
 from ._results import Status as Status, status_name as status_name  # re-exported for older imports
+
+
+@jaxsh.jit
+def _take(fields, index):
+    """`a[index]` for every array of `fields` (None stays None)."""
+    return jax.tree_util.tree_map(lambda a: a[index], fields)
 
 
 class Observations(eqx.Module):
@@ -60,17 +67,10 @@ class Observations(eqx.Module):
         return self.values.shape[1]
 
     def subset(self, index) -> "Observations":
-        """The samples at integer `index` (outside jit)."""
-        index = np.asarray(index)
-
-        def take(a):
-            return None if a is None else a[index]
-
-        return Observations(
-            take(self.normals), take(self.views), take(self.values), take(self.weights), take(self.transfer),
-            take(self.fast_visibility), take(self.reflected_visibility), take(self.texel), take(self.view_index),
-            take(self.pixel_index), self.image_shapes, self.n_texels,
-        )
+        """The samples at integer `index` (outside jit): one compiled gather for every field."""
+        fields = (self.normals, self.views, self.values, self.weights, self.transfer, self.fast_visibility,
+                  self.reflected_visibility, self.texel, self.view_index, self.pixel_index)
+        return Observations(*_take(fields, jnp.asarray(np.asarray(index))), self.image_shapes, self.n_texels)
 
     def to_images(self, values: Real[ArrayLike, "N C"], fill: float = 0.0) -> list[np.ndarray]:
         """Scatter per-sample `values` `(N, C)` back into one `(H, W, C)` image per view."""

@@ -530,11 +530,13 @@ def factorize(
     atol = (1e-7 if f64 else 1e-5) if atol is None else float(atol)
     sub = obs
     # samples of positive weight (weight-0 padding, e.g. `shard_observations`, is never drawn nor counted)
-    n_pos = int(jnp.sum(obs.weights > 0))
+    # (on the host when the weights are: each eager jnp op here was a compilation of its own, ~1 s in all)
+    w_host = np.asarray(obs.weights) if getattr(obs.weights, "is_fully_addressable", True) else None
+    n_pos = int(np.count_nonzero(w_host > 0)) if w_host is not None else int(jnp.sum(obs.weights > 0))
     if search_pixels is not None and n_pos > int(search_pixels):
         key = jax.random.PRNGKey(0) if key is None else key
-        pos = jnp.nonzero(obs.weights > 0, size=n_pos)[0]
-        idx = np.sort(np.asarray(pos[jax.random.choice(key, n_pos, (int(search_pixels),), replace=False)]))
+        pos = np.flatnonzero(w_host > 0) if w_host is not None else np.asarray(jnp.nonzero(obs.weights > 0, size=n_pos)[0])
+        idx = np.sort(pos[np.asarray(_draw_without_replacement(key, n_pos, int(search_pixels)))])
         sub = obs.subset(idx)
     if lighting_method == "dual" and dual_height is None:
         dual_height = int(np.clip(np.floor(np.sqrt(sub.n_samples / 32.0)), 8, 64))
@@ -568,7 +570,7 @@ def factorize(
             if c2 > 0:
                 best = t[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h))
                 # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
-                bb_sub = float(jnp.sum(sub.weights[:, None] * sub.values**2))
+                bb_sub = float(_weighted_energy(sub.weights, sub.values))
                 curv_rss = c2 * bb_sub * n_pos / (n_pos if sub is obs else sub.n_samples)
         mu = jnp.asarray(1.0 + np.exp(best), dt)
         its1 = 9 + 7 + 7
@@ -610,7 +612,8 @@ def factorize(
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
-    brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, sigma)
+    kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2)
+    brdf = TorranceSparrow.unchecked(kd, ks, mu, sigma)
     se_mu = None
     if mu is not None:
         se_mu = jnp.asarray(jnp.inf, dt)
@@ -620,10 +623,27 @@ def factorize(
             s2 = float(rms) ** 2 * nobs / max(nobs - (jaxsh.num_coeffs(lmax) + 1) * obs.n_channels - 2 * obs.n_channels - 2, 1)
             se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
     std = TorranceSparrow.unchecked(se_ks, se_ks, se_mu, se_sigma)
+    stats["num_steps_simplex"] = its2
+    return result(brdf, lighting, src, std, status, iterations, rms, rel, stats)
+
+
+@jaxsh.jit
+def _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2):
+    """K_d, the status and the step count of a refined factorization (one program: eagerly, each op compiled)."""
     finite = jnp.all(jnp.isfinite(ks)) & jnp.isfinite(sigma) & jnp.isfinite(rms)
     status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_nm)
-    stats["num_steps_simplex"] = its2
-    return result(brdf, lighting, src, std, status, its1 + its2, rms, rel, stats)
+    return 1.0 - ks, status, its1 + its2
+
+
+@jaxsh.jit
+def _draw_without_replacement(key, n: int, m: int):
+    """`jax.random.choice(key, n, (m,), replace=False)` as one compiled program (eagerly: several)."""
+    return jax.random.choice(key, n, (m,), replace=False)
+
+
+@jaxsh.jit
+def _weighted_energy(w, b):
+    return jnp.sum(w[:, None] * b * b)
 
 
 class _Stage1(eqx.Module):
