@@ -329,6 +329,24 @@ def test_factorize_from_the_table_equals_the_direct_sums_end_to_end(obs_noisy, f
     np.testing.assert_allclose(np.asarray(new.lighting.fast_energy), np.asarray(ref.lighting.fast_energy), rtol=1e-4)
 
 
+def test_factorize_subset_draw_is_jax_random_choice(obs_noisy):
+    # `factorize` draws its search subset in one compiled program; the draw is `jax.random.choice` without
+    # replacement (what `benchmarks/bench_inverse.py`'s scipy baseline draws), and `Observations.subset` gathers
+    # every field at the drawn indices
+    from solvers import _factorize as F
+
+    key = jax.random.PRNGKey(7)
+    n = obs_noisy.n_samples
+    got = np.asarray(F._draw_without_replacement(key, n, 500))
+    np.testing.assert_array_equal(got, np.asarray(jax.random.choice(key, n, (500,), replace=False)))
+    assert np.unique(got).size == 500
+    idx = np.sort(got)
+    sub = obs_noisy.subset(idx)
+    for name in ("normals", "views", "values", "weights", "view_index", "pixel_index"):
+        np.testing.assert_array_equal(np.asarray(getattr(sub, name)), np.asarray(getattr(obs_noisy, name))[idx])
+    assert sub.transfer is None and sub.image_shapes == obs_noisy.image_shapes
+
+
 def test_factorize_mu_search_from_the_table_equals_the_direct_search(obs_noisy):
     # the stage-1 objective at each mu candidate is the same whether its blocks come from the subset's table
     # (default) or from `accumulate_gram` per candidate (the path above `_TABLE_BYTES`; end to end: the test above)
