@@ -574,7 +574,8 @@ def main():
     # 3. factorization -----------------------------------------------------------------------
     search = 40000
     key = jax.random.PRNGKey(0)
-    sub_idx = np.arange(N) if N <= search else np.sort(np.asarray(jax.random.choice(key, N, (search,), replace=False)))
+    # the subset `factorize` draws (NumPy's default_rng seeded with the key's data)
+    sub_idx = np.arange(N) if N <= search else np.sort(np.random.default_rng(np.asarray(key).astype(np.uint32).tolist()).choice(N, search, replace=False))
 
     def fac_acc(ks, mu, sigma, filtered):
         return (f"ks/(kd+ks) {rel(ks, ks_norm):.1%} mu {abs(mu - MU) / MU:.1%} sigma {abs(sigma - SIGMA) / SIGMA:.1%}"

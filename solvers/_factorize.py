@@ -534,9 +534,8 @@ def factorize(
     w_host = np.asarray(obs.weights) if getattr(obs.weights, "is_fully_addressable", True) else None
     n_pos = int(np.count_nonzero(w_host > 0)) if w_host is not None else int(jnp.sum(obs.weights > 0))
     if search_pixels is not None and n_pos > int(search_pixels):
-        key = jax.random.PRNGKey(0) if key is None else key
         pos = np.flatnonzero(w_host > 0) if w_host is not None else np.asarray(jnp.nonzero(obs.weights > 0, size=n_pos)[0])
-        idx = np.sort(pos[np.asarray(_draw_without_replacement(key, n_pos, int(search_pixels)))])
+        idx = np.sort(pos[_draw_without_replacement(key, n_pos, int(search_pixels))])
         sub = obs.subset(idx)
     if lighting_method == "dual" and dual_height is None:
         dual_height = int(np.clip(np.floor(np.sqrt(sub.n_samples / 32.0)), 8, 64))
@@ -577,6 +576,7 @@ def factorize(
     else:
         mu, its1 = None, 0
     dual = None
+    rows_obs = None  # the eq.-25 rows of all pixels at the stage-1 mu (direct path with a subset), for the refinement
     blocks = (None, None)  # the eq.-25 blocks at the stage-1 mu on all pixels and on the subset, for the refinement
     if lighting_method == "dual":
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
@@ -584,7 +584,9 @@ def factorize(
     else:
         # the subset's table serves the blocks on all pixels too when the subset is all pixels
         tabs = (tab, None) if sub is obs else (None, tab)
-        ks, res1, golden_steps, bl_obs, bl_sub = _stage1_final(obs, *tabs, mu, lmax, chunk, rcond)
+        # the refinement's final stage reads the rows of all pixels: made in the same pass as their blocks
+        want_rows = refine and find_sigma and sub is not obs
+        ks, res1, golden_steps, bl_obs, bl_sub, rows_obs = _stage1_final(obs, *tabs, mu, lmax, chunk, rcond, want_rows)
         blocks = (bl_obs, bl_obs if sub is obs else bl_sub)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
@@ -610,7 +612,8 @@ def factorize(
     if not refine:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
-    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab)
+    out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
+                  rows_obs)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
     kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2)
     brdf = TorranceSparrow.unchecked(kd, ks, mu, sigma)
@@ -635,10 +638,18 @@ def _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2):
     return 1.0 - ks, status, its1 + its2
 
 
-@jaxsh.jit
-def _draw_without_replacement(key, n: int, m: int):
-    """`jax.random.choice(key, n, (m,), replace=False)` as one compiled program (eagerly: several)."""
-    return jax.random.choice(key, n, (m,), replace=False)
+def _draw_without_replacement(key, n: int, m: int) -> np.ndarray:
+    """`m` distinct indices of `range(n)`, drawn on the host: NumPy's `default_rng` seeded with the key's data.
+
+    `jax.random.choice(key, n, (m,), replace=False)` compiled its shuffle (sorts of `n` random keys) into a
+    program of its own, ~0.5 s of a first call for a draw that takes milliseconds in NumPy. Deterministic for a
+    given key (and NumPy's `Generator.choice`); `key=None` is `jax.random.PRNGKey(0)`, whose data are (0, 0)."""
+    if key is None:
+        seed = [0, 0]
+    else:
+        data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
+        seed = np.asarray(data).astype(np.uint32).ravel().tolist()
+    return np.random.default_rng(seed).choice(n, m, replace=False)
 
 
 @jaxsh.jit
@@ -701,10 +712,9 @@ def _mu_candidates_table(tab: MirrorTable, t, lmax, rcond):
 
 
 def _pinv_each(a, rcond):
-    """`pinv_psd(..., half=True)` of each matrix of `a` `(K, m, m)`, one eigendecomposition per call (`eig_solve`:
-    no batched eigh): `(pinv (K, m, m), half (K, m, m))`."""
-    ps, hs = zip(*(pinv_psd(a[i], rcond, half=True) for i in range(a.shape[0])))
-    return jnp.stack(ps), jnp.stack(hs)
+    """`pinv_psd(..., half=True)` of each matrix of `a` `(K, m, m)` (`eigh_stack`: one batched call on one local
+    device): `(pinv (K, m, m), half (K, m, m))`."""
+    return pinv_psd(a, rcond, half=True)
 
 
 def _blocks_from_table(tab: MirrorTable, mu, lmax: int, rcond) -> _Blocks:
@@ -713,16 +723,25 @@ def _blocks_from_table(tab: MirrorTable, mu, lmax: int, rcond) -> _Blocks:
 
 
 @jaxsh.jit
-def _stage1_final(obs, tab_obs, tab_sub, mu, lmax, chunk, rcond):
+def _stage1_final(obs, tab_obs, tab_sub, mu, lmax, chunk, rcond, rows: bool = False):
     """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there, and the blocks at mu on all
     pixels and on the subset, which the refinement reuses. `tab_obs`: the `MirrorTable` of all pixels (the
-    subset is all pixels), or None (direct sums); `tab_sub`: the subset's, or None (its blocks are not formed)."""
+    subset is all pixels), or None (direct sums); `tab_sub`: the subset's, or None (its blocks are not formed).
+    `rows` (direct sums only): also the eq.-25 rows of all pixels, `(9 + n, N)` from the same pass over the
+    pixels (`accumulate_gram(..., rows=True)`), for the refinement's final stage; else None."""
     dt = obs.values.dtype
     ones = jnp.ones(((lmax + 1) ** 2,), dt)
-    bl = _blocks(obs, mu, lmax, chunk, rcond) if tab_obs is None else _blocks_from_table(tab_obs, mu, lmax, rcond)
+    rows_obs = None
+    if tab_obs is None:
+        g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility,
+                            mu, None, lmax, chunk, rows)
+        g, rows_obs = g if rows else (g, None)
+        bl = _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
+    else:
+        bl = _blocks_from_table(tab_obs, mu, lmax, rcond)
     ks, _, steps = _golden_ks(bl, ones, 1e-11, 1e-11, 100)
     bl_sub = None if tab_sub is None else _blocks_from_table(tab_sub, mu, lmax, rcond)
-    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl, bl_sub
+    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl, bl_sub, rows_obs
 
 
 class _Joint(eqx.Module):
@@ -743,9 +762,9 @@ class _Joint(eqx.Module):
 def _joint(o: Observations, bl, mu, lmax, chunk, rcond, column) -> _Joint:
     """`_Joint` of `o`; `bl`: its eq.-25 blocks at `mu` when already formed (else None: formed here)."""
     bl = _blocks(o, mu, lmax, chunk, rcond) if bl is None else bl
-    d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax)
+    d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax, coeffs_first=True)
     fvis = None if column is None else o.fast_visibility[:, column]
-    return _Joint(bl, jnp.concatenate([d, s], 1).T, o.weights, o.values, o.normals, o.views, fvis)
+    return _Joint(bl, jnp.concatenate([d, s], 0), o.weights, o.values, o.normals, o.views, fvis)
 
 
 class _SourceParts(eqx.Module):
@@ -801,9 +820,11 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
     return _schur_rss(jt.bl, kd, ks, filt, (a_d, a_s, a_ss, r_s))
 
 
-def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None):
+def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None,
+            rows_obs=None):
     """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here);
-    `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None."""
+    `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None; `rows_obs`: the
+    eq.-25 rows of `obs` at `mu` (`_stage1_final`), or None (formed here)."""
     bl_obs, bl_sub = blocks
     if tab is not None and bl_sub is not None:
         jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax)
@@ -813,7 +834,12 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
     p, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
-    jt = jt_sub if sub is obs else _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
+    if sub is obs:
+        jt = jt_sub
+    elif rows_obs is not None and bl_obs is not None:
+        jt = _joint_padded(obs, bl_obs, rows_obs, column)
+    else:
+        jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
     return _refine_final(jt, p, mu, d, lmax, status, its)
 
 
@@ -844,6 +870,17 @@ def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _
     f = tab.s_scale if mu is None else tab.s_scale * jaxsh.fresnel_normalized(tab.cos_o, mu)
     rows = jnp.concatenate([tab.d.T, tab.y2[: (lmax + 1) ** 2] * f[None, :]], 0)
     return _Joint(bl, rows, o.weights, o.values, o.normals, o.views, None)
+
+
+@jaxsh.jit
+def _joint_padded(o: Observations, bl, rows, column) -> _Joint:
+    """`_Joint` of all pixels from the rows `_stage1_final` made, `(9 + n, N + pad)`: the pixels are padded to the
+    rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum."""
+    pad = rows.shape[1] - o.n_samples
+    up = jnp.zeros((pad, 3), o.normals.dtype).at[:, 2].set(1.0)
+    fvis = None if column is None else jnp.pad(o.fast_visibility[:, column], (0, pad))
+    return _Joint(bl, rows, jnp.pad(o.weights, (0, pad)), jnp.pad(o.values, ((0, pad), (0, 0))),
+                  jnp.concatenate([o.normals, up]), jnp.concatenate([o.views, up]), fvis)
 
 
 @jaxsh.jit
@@ -882,7 +919,9 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
 
     Channel c's RSS depends on its own $K_{s,c}$ and on σ only, so the $K_s$ block is diagonal and a 9-point
     central-difference stencil in $(K_s, \\sigma)$ (all channels' $K_s$ moved together, steps `_FD_STEP`
-    relative) gives every entry, from 9 evaluations of `_joint_rss` in one `vmap`. The exact second
+    relative) gives every entry, from 9 evaluations of `_joint_rss` in one `vmap`; its centre is `_joint_rss` at
+    `(ks, sigma)` itself, returned as well (`(hess, (rss, x1, x2))`: one copy of the objective in the
+    compiled program instead of two). The exact second
     derivative through the (then unrolled) eliminations of `_schur_rss` (`jax.hessian`) took 7-10 s to compile;
     measured against it: the Hessian and the variances agree to 9e-7 on a 3-view 48² sphere
     (`tests/test_inverse.py` checks 1e-5).
@@ -894,14 +933,16 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
     a, b = jnp.asarray(a.ravel(), ks.dtype), jnp.asarray(b.ravel(), ks.dtype)
 
     def rss_at(ai, bi):
-        return _joint_rss(jt, sp, ks + ai * hk, sigma + bi * hs, lmax)[0]  # (C,)
+        return _joint_rss(jt, sp, ks + ai * hk, sigma + bi * hs, lmax)
 
-    r = jax.vmap(rss_at)(a, b).reshape(3, 3, c)  # [ks step, sigma step, channel]
+    rss, x1, x2 = jax.vmap(rss_at)(a, b)
+    r = rss.reshape(3, 3, c)  # [ks step, sigma step, channel]
     h_kk = (r[2, 1] - 2.0 * r[1, 1] + r[0, 1]) / hk**2
     h_ss = jnp.sum(r[1, 2] - 2.0 * r[1, 1] + r[1, 0]) / hs**2
     h_ks = (r[2, 2] - r[2, 0] - r[0, 2] + r[0, 0]) / (4.0 * hk * hs)
     top = jnp.concatenate([jnp.diag(h_kk), h_ks[:, None]], 1)
-    return jnp.concatenate([top, jnp.concatenate([h_ks, h_ss[None]])[None, :]], 0)
+    hess = jnp.concatenate([top, jnp.concatenate([h_ks, h_ss[None]])[None, :]], 0)
+    return hess, (rss[4], x1[4], x2[4])  # the stencil's centre (steps 0, 0) is `_joint_rss` at (ks, sigma)
 
 
 @jaxsh.jit
@@ -909,7 +950,7 @@ def _refine_final(jt, p, mu, d, lmax, status, its):
     c = jt.b.shape[1]
     ks, sigma = _unpack(p, c)
     sp = _source_parts(jt, mu, d)
-    rss, x1, x2 = _joint_rss(jt, sp, ks, sigma, lmax)
+    hess, (rss, x1, x2) = _profiled_hessian(jt, sp, ks, sigma, lmax)
     nobs = jt.bl.g.count * c
     data_ss = jnp.sum(jt.bl.g.bb)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
@@ -918,7 +959,6 @@ def _refine_final(jt, p, mu, d, lmax, status, its):
     # standard errors of (ks, sigma): Hessian of the profiled RSS (Gauss-Newton: J'J = H/2)
     theta = jnp.concatenate([ks, sigma[None]])
 
-    hess = _profiled_hessian(jt, sp, ks, sigma, lmax)
     n_par = x1.size + x2.size + theta.size
     s2 = jnp.sum(rss) / jnp.maximum(nobs - n_par, 1.0)
     h2 = 0.5 * (hess + hess.T)

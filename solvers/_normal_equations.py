@@ -62,8 +62,9 @@ class Gram(eqx.Module):
     count: jax.Array | int | None  # () pixels with positive weight
 
 
-def eq25_rows(n, v, transfer, rvis, mu, filt, lmax: int):
-    """Diffuse rows `(chunk, 9)` and specular rows `(chunk, n_coeffs)` of R&H eq. 25.
+def eq25_rows(n, v, transfer, rvis, mu, filt, lmax: int, coeffs_first: bool = False):
+    """Diffuse rows `(chunk, 9)` and specular rows `(chunk, n_coeffs)` of R&H eq. 25 (`coeffs_first`: `(9, chunk)`
+    and `(n_coeffs, chunk)`, made in that layout).
 
     Diffuse: $\\Lambda_l\\hat\\rho_l Y_{lm}(n)$, $l \\le 2$ (eq. 21), or the
     transfer vector $T_{lm}$ (sec. 6.4); specular: $F(\\mu,\\theta_o) Y_{lm}(R)$
@@ -73,27 +74,32 @@ def eq25_rows(n, v, transfer, rvis, mu, filt, lmax: int):
     dt = n.dtype
     l2 = min(lmax, 2)
     if transfer is not None:
-        d = transfer[:, : (l2 + 1) ** 2]
+        d = transfer[:, : (l2 + 1) ** 2].T
     else:
         a = jaxsh.lambertian_spectrum(l2, dt)[jaxsh.sh_degrees(l2)]
-        d = jaxsh.real_sh(n, l2) * a[None, :]
-    d = jnp.pad(d, ((0, 0), (0, 9 - d.shape[1])))
+        d = jaxsh.real_sh(n, l2, coeffs_first=True) * a[:, None]
+    d = jnp.pad(d, ((0, 9 - d.shape[0]), (0, 0)))
     cos_o = jnp.sum(n * v, -1)
     vis = cos_o > 0
     cos_o = jnp.where(vis, cos_o, 1.0)
     f = jnp.ones_like(cos_o) if mu is None else jaxsh.fresnel_normalized(cos_o, mu)
     r = jaxsh.reflect(v, n)
-    y = jaxsh.real_sh(r, lmax)
+    y = jaxsh.real_sh(r, lmax, coeffs_first=True)
     if filt is not None:
-        y = y * filt[None, :]
+        y = y * filt[:, None]
     scale = f if rvis is None else f * rvis
-    s = y * jnp.where(vis, scale, 0.0)[:, None]
-    d = jnp.where(vis[:, None], d, 0.0)
-    return d, s
+    s = y * jnp.where(vis, scale, 0.0)[None, :]
+    d = jnp.where(vis[None, :], d, 0.0)
+    return (d, s) if coeffs_first else (d.T, s.T)
 
 
-def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int) -> Gram:
-    """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding)."""
+def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int, rows: bool = False):
+    """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding).
+
+    With `rows`, also return the design rows of all pixels, diffuse and specular stacked, pixels last:
+    `(9 + n_coeffs, N + pad)` (`eq25_rows` with `coeffs_first`; the `pad = -N % chunk` last columns are 0: a
+    slice to N would copy the whole array again), from the same pass (`factorize`'s refinement on all pixels
+    reads them). Returns `Gram` or `(Gram, rows)`."""
     npx = n.shape[0]
     pad = (-npx) % chunk
     up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
@@ -111,17 +117,23 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int)
         jnp.zeros((nc, c), dt), jnp.zeros((c,), dt), jnp.zeros((), dt),
     )
 
-    def step(acc, xs):
+    def step(carry, xs):
+        acc, buf, i = carry
         nn, vv, bb, ww, tt, rr = xs
-        d, s = eq25_rows(nn, vv, tt, rr, mu, filt, lmax)
-        wd, ws = d * ww[:, None], s * ww[:, None]
-        return Gram(
-            acc.dd + wd.T @ d, acc.ds + wd.T @ s, acc.ss + ws.T @ s, acc.db + wd.T @ bb, acc.sb + ws.T @ bb,
+        d, s = eq25_rows(nn, vv, tt, rr, mu, filt, lmax, coeffs_first=True)  # (9, chunk), (nc, chunk)
+        wd, ws = d * ww[None, :], s * ww[None, :]
+        g = Gram(
+            acc.dd + wd @ d.T, acc.ds + wd @ s.T, acc.ss + ws @ s.T, acc.db + wd @ bb, acc.sb + ws @ bb,
             acc.bb + jnp.sum(ww[:, None] * bb * bb, 0), acc.count + jnp.sum((ww > 0).astype(dt)),
-        ), None
+        )
+        if rows:  # written in place into the (9 + nc, N + pad) carry (stacked scan outputs and a transpose: 2x slower)
+            buf = jax.lax.dynamic_update_slice(buf, d, (jnp.zeros_like(i), i * chunk))
+            buf = jax.lax.dynamic_update_slice(buf, s, (jnp.full_like(i, 9), i * chunk))
+        return (g, buf, i + 1), None
 
-    out, _ = jax.lax.scan(step, init, (n_p, v_p, b_p, w_p, t_p, r_p))
-    return out
+    buf = jnp.zeros((9 + nc, npx + pad), dt) if rows else None
+    (out, buf, _), _ = jax.lax.scan(step, (init, buf, jnp.zeros((), jnp.int32)), (n_p, v_p, b_p, w_p, t_p, r_p))
+    return (out, buf) if rows else out
 
 
 class MirrorTable(eqx.Module):
@@ -143,11 +155,12 @@ class MirrorTable(eqx.Module):
 
 def mirror_table(n, v, b, w, transfer, rvis, lmax: int) -> MirrorTable:
     """`MirrorTable` of eq. 25's rows (`eq25_rows` without the Fresnel factor); memory $O(N (2l^*+1)^2)$."""
-    d, _ = eq25_rows(n, v, transfer, None, None, None, min(lmax, 2))
+    d, _ = eq25_rows(n, v, transfer, None, None, None, min(lmax, 2), coeffs_first=True)
+    d = d.T
     cos_o = jnp.sum(n * v, -1)
     vis = cos_o > 0
     scale = jnp.where(vis, 1.0 if rvis is None else rvis, 0.0).astype(n.dtype)
-    y2 = jaxsh.real_sh(jaxsh.reflect(v, n), 2 * lmax).T
+    y2 = jaxsh.real_sh(jaxsh.reflect(v, n), 2 * lmax, coeffs_first=True)
     return MirrorTable(y2, d, scale, jnp.where(vis, cos_o, 1.0), b, w)
 
 
@@ -203,6 +216,26 @@ def channel_system(g: Gram, kd, ks):
 # --------------------------------------------------------------------------- eigen solves (outside loops)
 
 
+def batched_lapack_safe() -> bool:
+    """Whether a batched LAPACK call (`eigh` of a stack) may run: not on several local CPU devices.
+
+    jaxlib fans a batched CPU `eigh` out into the intra-op thread pool and waits from inside it; forced host
+    devices share that pool and deadlocked (docs/howto_scale.md). With one local device (the usual case) the
+    batched call is safe and compiles as one LAPACK call: 9 unbatched `eigh` + pseudo-inverses of
+    `factorize`'s μ round took 0.71 s of XLA compilation, the batched form 0.12 s (same results, same run
+    time). Read at trace time."""
+    return jax.default_backend() != "cpu" or jax.local_device_count() == 1
+
+
+def eigh_stack(a):
+    """`jnp.linalg.eigh` of each matrix of the stack `a` `(K, n, n)`: one batched call where
+    `batched_lapack_safe`, else one call per matrix (stacked)."""
+    if batched_lapack_safe():
+        return jnp.linalg.eigh(a)
+    pairs = [jnp.linalg.eigh(a[i]) for i in range(a.shape[0])]
+    return jnp.stack([p[0] for p in pairs]), jnp.stack([p[1] for p in pairs])
+
+
 def eig_solve(ata, atb, bb, count, rcond, ridge):
     """Eigen-solve batched normal equations $A^TA x = A^Tb$ (minimum norm, eigenvalues below `rcond`·max dropped).
 
@@ -210,10 +243,8 @@ def eig_solve(ata, atb, bb, count, rcond, ridge):
     `inf` where a coefficient has weight in the null space), `determined` `(C, n)`, the singular values of
     $A$ `(C, n)` descending, `rss` `(C,)` ($b^Tb - 2x^TA^Tb + x^TA^TAx$, exact for any $x$) and `rank` `(C,)`.
     """
-    # one eigh per channel (ascending): jaxlib's batched CPU eigh waits on the intra-op thread pool from inside
-    # it, and deadlocked with several forced host devices (docs/howto_scale.md); per matrix it is the same LAPACK call
-    pairs = [jnp.linalg.eigh(ata[c]) for c in range(ata.shape[0])]
-    evals, evecs = jnp.stack([p[0] for p in pairs]), jnp.stack([p[1] for p in pairs])
+    # ascending; one call per channel on several local CPU devices (`eigh_stack`, docs/howto_scale.md)
+    evals, evecs = eigh_stack(ata)
     top = evals[:, -1:]
     keep = evals > rcond * top
     inv = jnp.where(keep, 1.0 / (jnp.where(keep, evals, 1.0) + ridge), 0.0)
@@ -237,7 +268,7 @@ def pinv_psd(a, rcond, half: bool = False):
     With `half`, also its square-root factor $H = \\Lambda_+^{-1/2}V^T$ (rows of dropped eigenpairs zero):
     $\\mathrm{pinv} = H^TH$. Returns `pinv` or `(pinv, H)`."""
     evals, evecs = jnp.linalg.eigh(a)
-    keep = evals > rcond * jnp.max(evals)
+    keep = evals > rcond * jnp.max(evals, -1, keepdims=True)
     inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
     p = (evecs * inv[..., None, :]) @ jnp.swapaxes(evecs, -1, -2)
     if not half:

@@ -240,7 +240,7 @@ def test_factorize_hessian_of_the_profiled_rss_against_autodiff(obs_noisy, facto
     c = ks.shape[0]
     theta = jnp.concatenate([ks, sigma[None]])
     exact = np.asarray(jax.jit(jax.hessian(lambda th: jnp.sum(F._joint_rss(jt, sp, th[:c], th[c], 12)[0])))(theta))
-    fd = np.asarray(jax.jit(lambda: F._profiled_hessian(jt, sp, ks, sigma, 12))())
+    fd = np.asarray(jax.jit(lambda: F._profiled_hessian(jt, sp, ks, sigma, 12)[0])())
     assert np.max(np.abs(fd - exact)) < 1e-5 * np.max(np.abs(exact))  # measured 9e-7 on a 3-view 48^2 sphere
     assert np.all(exact[:c, :c][~np.eye(c, dtype=bool)] == 0)  # the K_s block is diagonal: channels decouple
     np.testing.assert_allclose(np.diag(np.linalg.inv(fd)), np.diag(np.linalg.inv(exact)), rtol=1e-5)
@@ -329,17 +329,20 @@ def test_factorize_from_the_table_equals_the_direct_sums_end_to_end(obs_noisy, f
     np.testing.assert_allclose(np.asarray(new.lighting.fast_energy), np.asarray(ref.lighting.fast_energy), rtol=1e-4)
 
 
-def test_factorize_subset_draw_is_jax_random_choice(obs_noisy):
-    # `factorize` draws its search subset in one compiled program; the draw is `jax.random.choice` without
-    # replacement (what `benchmarks/bench_inverse.py`'s scipy baseline draws), and `Observations.subset` gathers
-    # every field at the drawn indices
+def test_factorize_subset_draw_is_numpy_seeded_by_the_key(obs_noisy):
+    # `factorize` draws its search subset on the host: NumPy's `default_rng` seeded with the key's data (what
+    # `benchmarks/bench_inverse.py`'s scipy baseline draws), the same for a raw and a typed key, different for
+    # another key; `Observations.subset` gathers every field at the drawn indices
     from solvers import _factorize as F
 
     key = jax.random.PRNGKey(7)
     n = obs_noisy.n_samples
-    got = np.asarray(F._draw_without_replacement(key, n, 500))
-    np.testing.assert_array_equal(got, np.asarray(jax.random.choice(key, n, (500,), replace=False)))
-    assert np.unique(got).size == 500
+    got = F._draw_without_replacement(key, n, 500)
+    seed = np.asarray(key).astype(np.uint32).tolist()
+    np.testing.assert_array_equal(got, np.random.default_rng(seed).choice(n, 500, replace=False))
+    np.testing.assert_array_equal(F._draw_without_replacement(jax.random.wrap_key_data(key), n, 500), got)
+    assert not np.array_equal(F._draw_without_replacement(jax.random.PRNGKey(8), n, 500), got)
+    assert np.unique(got).size == 500 and got.min() >= 0 and got.max() < n
     idx = np.sort(got)
     sub = obs_noisy.subset(idx)
     for name in ("normals", "views", "values", "weights", "view_index", "pixel_index"):

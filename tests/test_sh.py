@@ -242,6 +242,37 @@ def test_scan_and_unrolled_paths_agree(rng):
     a = jnp.stack(_sh._basis_unrolled(d[:, 0], d[:, 1], d[:, 2], 12), -1)
     b = _sh._basis_scan(d[:, 0], d[:, 1], d[:, 2], 12).T
     np.testing.assert_allclose(a, b, atol=1e-14)
+    # the rolled kernel of `real_sh` (signed-layout windows) against the per-(l, m) Python recurrence
+    np.testing.assert_allclose(_sh._real_sh_flat(d, 12), a, atol=1e-14)
+
+
+@pytest.mark.parametrize("lmax", [0, 1, 2, 7, 16, 25])
+@pytest.mark.parametrize("n", [0, 1, 17, 600])
+def test_real_sh_chunks_and_layouts(rng, lmax, n):
+    """Every chunking case of the kernel (none, one partial chunk, several with a shifted last one) and both
+    layouts equal scipy; `coeffs_first` is the transpose, made in that layout."""
+    from jaxsh import _sh
+
+    chunk = _sh._chunk_size(lmax)
+    assert 16 <= chunk <= 256 and chunk & (chunk - 1) == 0
+    d = _test_dirs(rng, n)[-n:] if n else np.zeros((0, 3))  # the last n include the poles
+    got = np.asarray(jaxsh.real_sh(d, lmax))
+    assert got.shape == (n, (lmax + 1) ** 2)
+    if n:
+        np.testing.assert_allclose(got, scipy_real_sh(d, lmax), rtol=0, atol=1e-12)
+    t = np.asarray(jaxsh.real_sh(d, lmax, coeffs_first=True))
+    assert t.shape == ((lmax + 1) ** 2, n)
+    np.testing.assert_array_equal(t, got.T)
+
+
+def test_real_sh_coeffs_first_batch_and_float32(rng):
+    d = random_dirs(rng, (4, 5)).astype(np.float32)
+    a = jaxsh.real_sh(d, 6)
+    b = jaxsh.real_sh(d, 6, coeffs_first=True)
+    assert a.shape == (4, 5, 49) and b.shape == (49, 4, 5) and b.dtype == jnp.float32
+    np.testing.assert_array_equal(np.moveaxis(np.asarray(b), 0, -1), np.asarray(a))
+    with pytest.raises(ValueError, match="coeffs_first"):
+        jaxsh.real_sh(d, 6, coeffs_first="yes")
 
 
 # ---------------------------------------------------------------- gradients
