@@ -287,7 +287,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         S = terms.specular_unit(mu, sigma)  # once per evaluation: the inner solve and the residual share it
         kd, ks, bad = _inner(D, S, b, w, texel, n_texels, textured)
         r = sw * (_combine(D, S, kd, ks, texel) - b)
-        return r, (kd, ks, bad)
+        return r, (kd, ks, bad, D, S)
 
     def profiled(u):
         return profiled_on(terms, b, w, sw, u)
@@ -340,14 +340,16 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         lm = optx.least_squares(explicit_jacobian(resid), optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0,
                                 max_steps=max_steps, throw=False)
         p1 = lm.value
-        better = jnp.sum(resid(p1, None) ** 2) <= jnp.sum(resid(p0, None) ** 2)
+        # both ends in one batched evaluation (one copy of the model in the program instead of two)
+        rr = jax.vmap(lambda q: resid(q, None))(jnp.stack([p0, p1]))
+        better = jnp.sum(rr[1] ** 2) <= jnp.sum(rr[0] ** 2)
         p = jnp.where(better & jnp.all(jnp.isfinite(p1)), p1, p0).astype(dt)
         u = jnp.clip(jnp.where(pinned, u, p), lo, hi)
         steps_lm = lm.stats["num_steps"]
         st_lm = status_from_optimistix(lm.result)
-    _, (kd, ks, bad) = profiled(u)
+    # the final evaluation serves the estimate, the residual and the design energy below (one copy of the model)
+    r, (kd, ks, bad, d_fin, s_fin) = profiled(u)
     mu, sigma = _to_natural(u, fresnel)
-    r = sw * (_model(terms, kd, ks, mu, sigma, texel) - b)
     rss = jnp.sum(r * r)
     at_bound = (u <= lo + _AT_BOUND_TOL) | (u >= hi - _AT_BOUND_TOL)
     bound_mu = at_bound[0] if fresnel else jnp.asarray(False)
@@ -390,8 +392,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         n_par = kd.size + (ks.shape[-1] if textured == "kd" else ks.size) + (2 if fresnel else 1)
         cov, se2 = covariance_from_jacobian(J, rss, nobs, n_par)
         # Texel K_d (and K_s) errors, conditional on mu, sigma: diagonal of the per-texel 2x2 inverse.
-        D = terms.diffuse_unit()
-        S = terms.specular_unit(mu, sigma)
+        D, S = d_fin, s_fin
         s2 = rss / jnp.maximum(nobs - n_par, 1.0)
 
         def seg(x):
@@ -412,7 +413,6 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     finite = jnp.isfinite(rss) & jnp.all(jnp.isfinite(kd)) & jnp.isfinite(sigma)
     data_ss = jnp.sum(w[:, None] * b * b)
     # the model's own energy per channel: 0 under all-zero lighting (no pixel carries information on kd, ks)
-    d_fin, s_fin = terms.diffuse_unit(), terms.specular_unit(mu, sigma)
     design_ss = jnp.min(jnp.sum(w[:, None] * (d_fin * d_fin + s_fin * s_fin), 0))
     status = worst(
         Status.where(finite, Status.converged, Status.nonfinite),

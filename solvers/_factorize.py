@@ -552,7 +552,7 @@ def factorize(
             if lighting_method == "dual":
                 vals = np.asarray(_mu_candidates_dual(sub, jnp.asarray(tp, dt), dual_height))[: len(t)]
             elif tab is not None:
-                vals = np.asarray(_mu_candidates_table(tab, jnp.asarray(tp, dt), lmax, rcond))[: len(t)]
+                vals = np.asarray(_golden_batch(_mu_blocks(tab, jnp.asarray(1.0 + np.exp(tp), dt), lmax, rcond))[0])[: len(t)]
             else:
                 vals = np.asarray(_mu_candidates(sub, jnp.asarray(tp, dt), lmax, chunk, rcond))[: len(t)]
             # all-NaN when the data carry no signal (black images): keep the centre, the status says no_signal
@@ -581,13 +581,24 @@ def factorize(
     if lighting_method == "dual":
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
         dual, res1 = _dual_stage1(obs, ks, mu, 2 * dual_height, lmax, rcond)
+    elif tab is not None:
+        # The final stage-1 solve reuses the compiled programs of the mu rounds: the blocks at mu (9 copies, the
+        # rounds' batch) from the table when it holds all pixels, else from one pass over all pixels, which also
+        # makes their rows for the refinement; then the same batched golden search. The subset's blocks at mu,
+        # for the refinement, come from the rounds' program too.
+        mu9 = jnp.full((9,), mu)
+        if sub is obs:
+            bl_obs = bl_sub = _mu_blocks(tab, mu9, lmax, rcond)
+        else:
+            bl_obs, rows_obs = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, refine and find_sigma)
+            bl_sub = _mu_blocks(tab, mu9, lmax, rcond) if refine and find_sigma else None
+        _, ks, golden_steps = _golden_batch(bl_obs)
+        blocks = (bl_obs, bl_sub)
+        region_c = None if region is None else check_region(region, 128, dt)
+        res1, src = _lighting_and_source(bl_obs, ks, lmax, rcond, region_c, find_sigma)
     else:
-        # the subset's table serves the blocks on all pixels too when the subset is all pixels
-        tabs = (tab, None) if sub is obs else (None, tab)
-        # the refinement's final stage reads the rows of all pixels: made in the same pass as their blocks
-        want_rows = refine and find_sigma and sub is not obs
-        ks, res1, golden_steps, bl_obs, bl_sub, rows_obs = _stage1_final(obs, *tabs, mu, lmax, chunk, rcond, want_rows)
-        blocks = (bl_obs, bl_obs if sub is obs else bl_sub)
+        ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond)
+        blocks = (bl_obs, bl_obs if sub is obs else None)
     filtered = res1.coeffs
     inf = jnp.full_like(ks, jnp.inf)
     std_inf = TorranceSparrow.unchecked(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
@@ -604,9 +615,9 @@ def factorize(
     if not find_sigma:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, jnp.asarray(jnp.nan, dt))
         return result(brdf, res1.lighting, None, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
-    if dual is None:
+    if dual is None and tab is None:
         src = find_source.__wrapped__(filtered, region=region)
-    else:
+    elif dual is not None:
         src = _source_in_image(dual.image, dual.covered, check_region(region, 2 * dual_height, dt))
     stats["num_steps_bisection"] = src.num_steps
     if not refine:
@@ -685,7 +696,7 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
 
     def one(ti):
         bl = _blocks(sub, 1.0 + jnp.exp(ti), lmax, chunk, rcond)
-        _, rss, _ = _golden_ks(bl, ones, 1e-9, 1e-9, 100)
+        _, rss, _ = _golden_ks(bl, ones, 1e-11, 1e-11, 100)  # the tolerances of the table path (`_golden_batch`)
         return jnp.sum(rss) / jnp.sum(bl.g.bb)
 
     return jax.lax.map(one, t)
@@ -702,13 +713,47 @@ def _mirror_table_jit(o: Observations, lmax: int) -> MirrorTable:
 
 
 @jaxsh.jit
-def _mu_candidates_table(tab: MirrorTable, t, lmax, rcond):
-    """`_mu_candidates` from the subset's `MirrorTable`: the blocks of every candidate by `grams_at_mus`."""
-    g = grams_at_mus(tab, 1.0 + jnp.exp(t), lmax)
-    bl = _Blocks(g, *_pinv_each(g.ss[:, 9:, 9:], rcond))
-    ones = jnp.ones(((lmax + 1) ** 2,), tab.b.dtype)
-    _, rss, _ = jax.vmap(lambda b: _golden_ks(b, ones, 1e-9, 1e-9, 100))(bl)
-    return jnp.sum(rss, -1) / jnp.sum(g.bb, -1)
+def _mu_blocks(tab: MirrorTable, mus, lmax, rcond) -> _Blocks:
+    """The eq.-25 blocks at each Fresnel index of `mus` `(K,)` from a `MirrorTable` (`grams_at_mus`), with the
+    pseudo-inverses of their l > 2 blocks: a `_Blocks` whose fields have a leading K."""
+    g = grams_at_mus(tab, mus, lmax)
+    return _Blocks(g, *_pinv_each(g.ss[:, 9:, 9:], rcond))
+
+
+@jaxsh.jit
+def _golden_batch(bl: _Blocks):
+    """`_golden_ks` (tolerances 1e-11) for each of a batch of `_Blocks` (leading K): the profiled relative RSS
+    of each `(K,)`, and K_s `(C,)` and the golden steps `(C,)` of the first. One program serves the mu rounds
+    and the final stage-1 solve (`factorize`; the final blocks come batched like the rounds')."""
+    ones = jnp.ones((bl.g.ss.shape[-1],), bl.g.ss.dtype)
+    ks, rss, steps = jax.vmap(lambda b: _golden_ks(b, ones, 1e-11, 1e-11, 100))(bl)
+    return jnp.sum(rss, -1) / jnp.sum(bl.g.bb, -1), ks[0], steps[0]
+
+
+@jaxsh.jit
+def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows: bool):
+    """The eq.-25 blocks at `mu` on all pixels (`accumulate_gram`, one pass), with pinv, repeated to the batch
+    of 9 that `_golden_batch` was compiled for (`_mu_blocks`' layout), and with `rows` the pixels' eq.-25 rows
+    `(9 + n, N + pad)` from the same pass (else None)."""
+    g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility,
+                        mu, None, lmax, chunk, rows)
+    g, rows_obs = g if rows else (g, None)
+    bl = _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
+    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl), rows_obs
+
+
+@jaxsh.jit
+def _lighting_and_source(bl: _Blocks, ks, lmax: int, rcond, region, source: bool):
+    """The eq.-25 lighting at the stage-1 BRDF from the first of the batched blocks `bl`, and (with `source`)
+    the source and sigma of eq. 26 in it (`find_source` on a 128 x 256 map): one program."""
+    g = _first(bl).g
+    res = lighting_from_gram(g, 1.0 - ks, ks, lmax, 0.0, rcond)
+    return res, (_find_source(res.coeffs, region, 128, lmax) if source else None)
+
+
+def _first(bl: _Blocks) -> _Blocks:
+    """The first of batched `_Blocks` (leading K, `_mu_blocks`), or `bl` itself when it is not batched."""
+    return jax.tree_util.tree_map(lambda a: a[0], bl) if bl.g.dd.ndim == 3 else bl
 
 
 def _pinv_each(a, rcond):
@@ -723,25 +768,13 @@ def _blocks_from_table(tab: MirrorTable, mu, lmax: int, rcond) -> _Blocks:
 
 
 @jaxsh.jit
-def _stage1_final(obs, tab_obs, tab_sub, mu, lmax, chunk, rcond, rows: bool = False):
-    """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there, and the blocks at mu on all
-    pixels and on the subset, which the refinement reuses. `tab_obs`: the `MirrorTable` of all pixels (the
-    subset is all pixels), or None (direct sums); `tab_sub`: the subset's, or None (its blocks are not formed).
-    `rows` (direct sums only): also the eq.-25 rows of all pixels, `(9 + n, N)` from the same pass over the
-    pixels (`accumulate_gram(..., rows=True)`), for the refinement's final stage; else None."""
-    dt = obs.values.dtype
-    ones = jnp.ones(((lmax + 1) ** 2,), dt)
-    rows_obs = None
-    if tab_obs is None:
-        g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility,
-                            mu, None, lmax, chunk, rows)
-        g, rows_obs = g if rows else (g, None)
-        bl = _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
-    else:
-        bl = _blocks_from_table(tab_obs, mu, lmax, rcond)
+def _stage1_final(obs, mu, lmax, chunk, rcond):
+    """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there and the blocks at mu, by direct
+    sums (`factorize` without a `MirrorTable`: `fresnel=False`, or a search subset too large for one)."""
+    ones = jnp.ones(((lmax + 1) ** 2,), obs.values.dtype)
+    bl = _blocks(obs, mu, lmax, chunk, rcond)
     ks, _, steps = _golden_ks(bl, ones, 1e-11, 1e-11, 100)
-    bl_sub = None if tab_sub is None else _blocks_from_table(tab_sub, mu, lmax, rcond)
-    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl, bl_sub, rows_obs
+    return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl
 
 
 class _Joint(eqx.Module):
@@ -761,7 +794,7 @@ class _Joint(eqx.Module):
 
 def _joint(o: Observations, bl, mu, lmax, chunk, rcond, column) -> _Joint:
     """`_Joint` of `o`; `bl`: its eq.-25 blocks at `mu` when already formed (else None: formed here)."""
-    bl = _blocks(o, mu, lmax, chunk, rcond) if bl is None else bl
+    bl = _blocks(o, mu, lmax, chunk, rcond) if bl is None else _first(bl)
     d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax, coeffs_first=True)
     fvis = None if column is None else o.fast_visibility[:, column]
     return _Joint(bl, jnp.concatenate([d, s], 0), o.weights, o.values, o.normals, o.views, fvis)
@@ -824,7 +857,7 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
             rows_obs=None):
     """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here);
     `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None; `rows_obs`: the
-    eq.-25 rows of `obs` at `mu` (`_stage1_final`), or None (formed here)."""
+    eq.-25 rows of `obs` at `mu` (`_all_pixel_blocks`), or None (formed here)."""
     bl_obs, bl_sub = blocks
     if tab is not None and bl_sub is not None:
         jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax)
@@ -869,17 +902,17 @@ def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _
     """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH)."""
     f = tab.s_scale if mu is None else tab.s_scale * jaxsh.fresnel_normalized(tab.cos_o, mu)
     rows = jnp.concatenate([tab.d.T, tab.y2[: (lmax + 1) ** 2] * f[None, :]], 0)
-    return _Joint(bl, rows, o.weights, o.values, o.normals, o.views, None)
+    return _Joint(_first(bl), rows, o.weights, o.values, o.normals, o.views, None)
 
 
 @jaxsh.jit
 def _joint_padded(o: Observations, bl, rows, column) -> _Joint:
-    """`_Joint` of all pixels from the rows `_stage1_final` made, `(9 + n, N + pad)`: the pixels are padded to the
+    """`_Joint` of all pixels from the rows `_all_pixel_blocks` made, `(9 + n, N + pad)`: the pixels are padded to the
     rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum."""
     pad = rows.shape[1] - o.n_samples
     up = jnp.zeros((pad, 3), o.normals.dtype).at[:, 2].set(1.0)
     fvis = None if column is None else jnp.pad(o.fast_visibility[:, column], (0, pad))
-    return _Joint(bl, rows, jnp.pad(o.weights, (0, pad)), jnp.pad(o.values, ((0, pad), (0, 0))),
+    return _Joint(_first(bl), rows, jnp.pad(o.weights, (0, pad)), jnp.pad(o.values, ((0, pad), (0, 0))),
                   jnp.concatenate([o.normals, up]), jnp.concatenate([o.views, up]), fvis)
 
 

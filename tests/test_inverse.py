@@ -357,7 +357,7 @@ def test_factorize_mu_search_from_the_table_equals_the_direct_search(obs_noisy):
 
     sub = obs_noisy.subset(np.arange(0, obs_noisy.n_samples, 3))
     t = jnp.asarray(np.linspace(np.log(0.05), np.log(2.5), 9))
-    via_table = np.asarray(F._mu_candidates_table(F._mirror_table_jit(sub, 12), t, 12, 1e-12))
+    via_table = np.asarray(F._golden_batch(F._mu_blocks(F._mirror_table_jit(sub, 12), 1.0 + jnp.exp(t), 12, 1e-12))[0])
     direct = np.asarray(F._mu_candidates(sub, t, 12, 4096, 1e-12))
     np.testing.assert_allclose(via_table, direct, rtol=1e-10)  # measured 1.4e-11
     assert np.ptp(direct) > 0.1 * np.max(direct)  # the candidates differ: the comparison can see a wrong mu
