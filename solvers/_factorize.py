@@ -18,8 +18,9 @@ searches (the channels decouple once $\\mu$ is fixed):
   error of $\\mu$. That is 23 evaluations and three host round trips (the
   zoom centres are chosen by `numpy.argmin` between the calls). Each
   evaluation forms the normal-equation blocks of eq. 25 for that $\\mu$ once,
-  on a random subset of `search_pixels` pixels, and the pseudo-inverse of
-  their $l > 2$ block (one eigendecomposition per $\\mu$). The blocks of all
+  on a random subset of `search_pixels` pixels (drawn on the host by NumPy,
+  seeded with `key`), and the pseudo-inverse of their $l > 2$ block (one
+  batched eigendecomposition per round on one local device). The blocks of all
   candidates of a round come from one table of the subset's mirror-direction
   harmonics to $2l^*$, made once (`grams_at_mus`: the specular block by an
   exact quadrature of the projected point set, $O(N (2l^*+1)^2)$ per $\\mu$
@@ -33,7 +34,13 @@ searches (the channels decouple once $\\mu$ is fixed):
   elimination (no LAPACK call inside the loop; see `_normal_equations`).
 
 At the chosen $\\mu$ the search is repeated on all pixels and the lighting
-is solved as in `inverse_lighting` (the filtered lighting of eq. 25).
+is solved as in `inverse_lighting` (the filtered lighting of eq. 25). With the
+table, that final solve runs the rounds' own compiled programs (`_mu_blocks`,
+`_golden_batch`: the blocks of all pixels enter as a batch like a round's) and
+the pass over all pixels also makes their eq.-25 rows for the refinement
+(`_all_pixel_blocks`); the lighting and eq. 26 are one program
+(`_lighting_and_source`). Fewer, shared programs are what a first call waits
+for (XLA compilation; docs/performance.md).
 
 **Roughness (eq. 26).** $\\sigma$ comes from the recovered (filtered)
 lighting with $L_{cen} \\approx L_{tot}/(4\\pi\\sigma^2)$, evaluated with the
@@ -453,7 +460,10 @@ def factorize(
     - `refine`: joint refinement of $(K_s, \\sigma)$ and the lighting, with the
       lighting modelled as slow SH + the found source (needs `find_sigma`).
     - `search_pixels`: the searches use a random subset of this many pixels
-      (None: all); the final solve uses all pixels. `key`: PRNG key. Memory:
+      (None: all); the final solve uses all pixels. `key`: PRNG key (default
+      `jax.random.PRNGKey(0)`); the subset is NumPy's
+      `default_rng(key data).choice(n, search_pixels, replace=False)` over the
+      samples of positive weight, drawn on the host. Memory:
       with `fresnel`, the μ search holds the subset's harmonics to degree
       2·`lmax` (8·(2·`lmax`+1)² bytes per sample: 200 MB for 40,000 samples
       at `lmax` 12); where that would exceed 512 MB it forms each
@@ -809,7 +819,10 @@ class _SourceParts(eqx.Module):
     both zero where $\\cos\\theta_o \\le 0$: the rows of `jaxsh.practical_terms` for one fast source of unit
     energy with `fast_visibility=fvis[:, None]` (`tests/test_inverse.py`). With $\\mu$, `d` and the shadow fixed,
     only the specular row's lobe depends on σ, so `fd`, its sums with the slow rows and the data, `amp` and
-    $\\theta_h^2$ are formed once per compiled call."""
+    $\\theta_h^2$ are formed once per compiled call, and so are the σ- and $K_s$-free factors of the elimination
+    (`_joint_rss`): with $P = \\mathrm{pinv}(SS_{22}) = H^TH$ (`_Blocks.h22`), `e_d` $= H\\,DS_{12}^T$,
+    `e_s` $= H\\,SS_{12}^T$, `e_b` $= H\\,sb_2$ and `h_fd` $= H$ (the source's diffuse row against the
+    $l > 2$ columns)."""
 
     fd: Array  # (N,)
     amp: Array  # (N,)
@@ -817,6 +830,10 @@ class _SourceParts(eqx.Module):
     rows_fd: Array  # (9 + n,) rows @ (w fd)
     fd_fd: Array  # ()
     fd_b: Array  # (C,)
+    e_d: Array  # (m, 9), m = n - 9
+    e_s: Array  # (m, 9)
+    e_b: Array  # (m, C)
+    h_fd: Array  # (m,)
 
 
 def _source_parts(jt: _Joint, mu, d) -> _SourceParts:
@@ -832,12 +849,25 @@ def _source_parts(jt: _Joint, mu, d) -> _SourceParts:
     amp = jnp.where(lit, f * v_d / (4 * cos_o), 0.0)
     th2 = jaxsh.half_angle(d[None, :], v, n) ** 2
     wfd = jt.w * fd
-    return _SourceParts(fd, amp, th2, jt.rows @ wfd, jnp.sum(wfd * fd), wfd @ jt.b)
+    rows_fd = jt.rows @ wfd
+    g, h = jt.bl.g, jt.bl.h22
+    return _SourceParts(fd, amp, th2, rows_fd, jnp.sum(wfd * fd), wfd @ jt.b, h @ g.ds[:, 9:].T, h @ g.ss[:9, 9:].T,
+                        h @ g.sb[9:], h @ rows_fd[18:])
 
 
 def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
     """RSS per channel of [slow SH filtered by sigma + delta source at d] for kd = 1 - ks (the source's rows
-    from the precomputed `sp`: one pass over the rows per evaluation)."""
+    from the precomputed `sp`: one pass over the rows per evaluation). Returns `rss (C,)`, `x1 (C, 10)` (the
+    $l \\le 2$ lighting and the source's energy), `x2 (C, n - 9)` (the $l > 2$ lighting, unfiltered).
+
+    The elimination of `_schur_rss` with the source's column, in the factored form of `_golden_ks`: the unknowns
+    $l > 2$ enter through $A_{22}^{-1} = F_2^{-1}PF_2^{-1}/K_s^2$, and with $P = H^TH$ the filter $F_2$ and the
+    powers of $K_s$ cancel: $A_{12}A_{22}^{-1}A_{12}^T = Z^TZ$, $A_{12}A_{22}^{-1}r_2 = Z^Te_b$ with
+    $Z = [K_d e_d + K_s e_sF_1,\\; K_d h_{fd} + K_s H s_{fs}]$ `(m, 10)` ($s_{fs}$: the source's unfiltered
+    specular row against the $l > 2$ columns, the one σ-dependent product), the RSS is
+    $bb - |e_b|^2 - h^TS^{-1}h$ with $S = A_{11} - Z^TZ$, $h = r_1 - Z^Te_b$, and
+    $x_2 = F_2^{-1}H^T(e_b - Zx_1)/K_s$. $O(10\\,m)$ per channel and one 10×10 elimination instead of the
+    $(C, m, m)$ products of `_schur_rss` (tested equal to it, `tests/test_inverse.py`)."""
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     kd = 1.0 - ks
     fs = sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
@@ -850,7 +880,25 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
     a_s = (ks * kd)[None, :] * sfd[9:, None] + (ks**2)[None, :] * sfs[9:, None]
     a_ss = kd**2 * sp.fd_fd + 2 * kd * ks * jnp.sum(wfs * sp.fd) + ks**2 * jnp.sum(wfs * fs)
     r_s = kd * sp.fd_b + ks * (wfs @ jt.b)
-    return _schur_rss(jt.bl, kd, ks, filt, (a_d, a_s, a_ss, r_s))
+    g = jt.bl.g
+    f1, f2 = filt[:9], filt[9:]
+    kd_, ks_ = kd[:, None, None], ks[:, None, None]
+    ds1 = g.ds[:, :9] * f1[None, :]
+    a11 = kd_**2 * g.dd[None] + kd_ * ks_ * (ds1 + ds1.T)[None] + ks_**2 * (f1[:, None] * g.ss[:9, :9] * f1[None, :])[None]
+    a11 = jnp.concatenate(
+        [jnp.concatenate([a11, a_d.T[:, :, None]], 2), jnp.concatenate([a_d.T[:, None, :], a_ss[:, None, None]], 2)], 1
+    )  # (C, 10, 10)
+    r1 = jnp.concatenate([(kd[None, :] * g.db + ks[None, :] * f1[:, None] * g.sb[:9]).T, r_s[:, None]], 1)  # (C, 10)
+    z = jnp.concatenate([kd_ * sp.e_d[None] + ks_ * (sp.e_s * f1[None, :])[None],
+                         (kd[:, None] * sp.h_fd[None, :] + ks[:, None] * (jt.bl.h22 @ rows_fs[18:])[None, :])[:, :, None]],
+                        2)  # (C, m, 10)
+    e_b = sp.e_b.T  # (C, m)
+    h = r1 - jnp.einsum("cmk,cm->ck", z, e_b)
+    schur = a11 - jnp.einsum("cmk,cml->ckl", z, z)
+    x1 = solve_spd_small(schur, h)
+    rss = g.bb - jnp.sum(e_b * e_b, -1) - jnp.sum(h * x1, -1)
+    x2 = ((e_b - jnp.einsum("cmk,ck->cm", z, x1)) @ jt.bl.h22) / f2[None, :] / ks[:, None]
+    return rss, x1, x2
 
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None,

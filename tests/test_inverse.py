@@ -384,6 +384,55 @@ def test_factorize_source_rows_are_those_of_practical_terms(obs_noisy, rng):
     assert np.sum(np.asarray(fs) > 0) > 100 and np.sum((np.asarray(fvis) == 0) & (np.asarray(sp.fd) == 0)) > 100
 
 
+def test_factorize_joint_rss_equals_a_dense_weighted_least_squares(obs_noisy):
+    # the refinement's profiled RSS (`_joint_rss`: the factored elimination with P = H^T H) against a dense NumPy
+    # weighted least-squares solve of the same design (slow SH to l* filtered by exp(-(sigma l)^2), plus the source
+    # as one column), per channel: the RSS and the coefficients, and against the (C, m, m) elimination `_schur_rss`
+    from solvers import _factorize as F
+
+    o = obs_noisy
+    mu, lmax, sigma = jnp.asarray(1.6), 12, 0.13
+    ks = jnp.asarray([0.2, 0.35, 0.6])
+    d = jnp.asarray([0.3, -0.4, 0.866])
+    d = d / jnp.linalg.norm(d)
+    jt = F._joint_jit(o, None, mu, lmax, 4096, 1e-12, None)
+    sp = F._source_parts(jt, mu, d)
+    rss, x1, x2 = (np.asarray(a) for a in jax.jit(lambda: F._joint_rss(jt, sp, ks, sigma, lmax))())
+    rows, w, b = np.asarray(jt.rows), np.asarray(jt.w), np.asarray(jt.b)
+    filt = np.exp(-((sigma * jaxsh.sh_degrees(lmax)) ** 2))
+    fs = np.asarray(sp.amp) * np.exp(-np.asarray(sp.th2) / sigma**2) / (np.pi * sigma**2)
+    sw = np.sqrt(w)
+    for c in range(3):
+        kd_c, ks_c = 1.0 - float(ks[c]), float(ks[c])
+        spec = ks_c * rows[9:] * filt[:, None]  # (n, N)
+        spec[:9] += kd_c * rows[:9]
+        a = np.concatenate([spec, (kd_c * np.asarray(sp.fd) + ks_c * fs)[None]], 0).T * sw[:, None]
+        coef, *_ = np.linalg.lstsq(a, b[:, c] * sw, rcond=None)
+        ref_rss = np.sum((a @ coef - b[:, c] * sw) ** 2)
+        assert abs(rss[c] - ref_rss) <= 1e-12 * np.sum(w * b[:, c] ** 2)  # measured 8e-15
+        got = np.concatenate([x1[c, :9], x2[c], x1[c, 9:]])
+        np.testing.assert_allclose(got, coef, rtol=0, atol=1e-10 * np.max(np.abs(coef)))  # measured 6e-13
+    # the same elimination in the (C, m, m) form of `_schur_rss`
+    old = np.asarray(jax.jit(lambda: _schur_joint(F, jt, sp, ks, sigma, lmax))())
+    np.testing.assert_allclose(rss, old, rtol=1e-12)  # measured 6e-15
+
+
+def _schur_joint(F, jt, sp, ks, sigma, lmax):
+    """`_joint_rss` through `_schur_rss` (the unfactored elimination), as the refinement ran before."""
+    filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
+    kd = 1.0 - ks
+    fs = sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
+    wfs = jt.w * fs
+    rows_fs = jt.rows @ wfs
+    dfd, dfs = sp.rows_fd[:9], rows_fs[:9]
+    sfd, sfs = sp.rows_fd[9:] * filt, rows_fs[9:] * filt
+    a_d = (kd**2)[None, :] * dfd[:, None] + (kd * ks)[None, :] * (dfs[:, None] + sfd[:9, None]) + (ks**2)[None, :] * sfs[:9, None]
+    a_s = (ks * kd)[None, :] * sfd[9:, None] + (ks**2)[None, :] * sfs[9:, None]
+    a_ss = kd**2 * sp.fd_fd + 2 * kd * ks * jnp.sum(wfs * sp.fd) + ks**2 * jnp.sum(wfs * fs)
+    r_s = kd * sp.fd_b + ks * (wfs @ jt.b)
+    return F._schur_rss(jt.bl, kd, ks, filt, (a_d, a_s, a_ss, r_s))[0]
+
+
 def test_factorize_recovers_brdf_under_unknown_lighting(factorization):
     res = factorization
     assert solvers.status_name(res.status) == "converged"
