@@ -138,7 +138,7 @@ def _scan_parts(x, y, z, lmax: int):
         if len(zf) == 1:
             ql = al * (zf[0] * q1) - bl * q2 + dl
             return (ql, q1), ql
-        # Difference form below float64 (see `_basis_bands`).
+        # Difference form below float64 (see `_z_features` and `_rows_chunk`).
         sig, sw = zf
         delta = btl * (sig * q2) - al * (sw * q1)
         ql = rl * (sig * q1) + delta + dl

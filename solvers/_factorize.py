@@ -767,8 +767,8 @@ def _first(bl: _Blocks) -> _Blocks:
 
 
 def _pinv_each(a, rcond):
-    """`pinv_psd(..., half=True)` of each matrix of `a` `(K, m, m)` (`eigh_stack`: one batched call on one local
-    device): `(pinv (K, m, m), half (K, m, m))`."""
+    """`pinv_psd(..., half=True)` of each matrix of `a` `(K, m, m)` (through `eigh_stack`: one batched call on one
+    local device, one call per matrix on several): `(pinv (K, m, m), half (K, m, m))`."""
     return pinv_psd(a, rcond, half=True)
 
 

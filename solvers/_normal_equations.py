@@ -266,8 +266,10 @@ def pinv_psd(a, rcond, half: bool = False):
     """Pseudo-inverse of a symmetric PSD matrix by eigendecomposition (eigenvalues < `rcond`·max dropped).
 
     With `half`, also its square-root factor $H = \\Lambda_+^{-1/2}V^T$ (rows of dropped eigenpairs zero):
-    $\\mathrm{pinv} = H^TH$. Returns `pinv` or `(pinv, H)`."""
-    evals, evecs = jnp.linalg.eigh(a)
+    $\\mathrm{pinv} = H^TH$. Returns `pinv` or `(pinv, H)`. A stack `(K, m, m)` goes through `eigh_stack`
+    (one batched call on one local device, one call per matrix on several: a batched CPU `eigh` deadlocked
+    there)."""
+    evals, evecs = eigh_stack(a) if jnp.ndim(a) == 3 else jnp.linalg.eigh(a)
     keep = evals > rcond * jnp.max(evals, -1, keepdims=True)
     inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
     p = (evecs * inv[..., None, :]) @ jnp.swapaxes(evecs, -1, -2)

@@ -74,9 +74,10 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
 MINIMIZER_TOL = 1e-6
 
 
-@pytest.mark.slow  # ~50 s on a quiet 2-core machine (was skipped: ~17 min under load 12, mostly compiling)
+# Not marked slow (19 s here): it also guards against a deadlock. A batched CPU `eigh` (the mu rounds'
+# pseudo-inverses) hung this process on 4 forced host devices until `pinv_psd` sent stacks through `eigh_stack`.
 def test_sharded_factorize_equals_one_device():
-    r = _worker("equal", "factorize")
+    r = _worker("equal", "factorize", timeout=300)
     assert r["factorize"]["status"][0] == r["factorize"]["status"][1] == "converged"
     assert r["factorize"]["rel"] < MINIMIZER_TOL, r
 
