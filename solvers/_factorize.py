@@ -79,6 +79,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
+from ._host_random import host_rng
 from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
@@ -660,17 +661,12 @@ def _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2):
 
 
 def _draw_without_replacement(key, n: int, m: int) -> np.ndarray:
-    """`m` distinct indices of `range(n)`, drawn on the host: NumPy's `default_rng` seeded with the key's data.
+    """`m` distinct indices of `range(n)`, drawn on the host (`host_rng`: NumPy seeded with the key's data).
 
     `jax.random.choice(key, n, (m,), replace=False)` compiled its shuffle (sorts of `n` random keys) into a
     program of its own, ~0.5 s of a first call for a draw that takes milliseconds in NumPy. Deterministic for a
-    given key (and NumPy's `Generator.choice`); `key=None` is `jax.random.PRNGKey(0)`, whose data are (0, 0)."""
-    if key is None:
-        seed = [0, 0]
-    else:
-        data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
-        seed = np.asarray(data).astype(np.uint32).ravel().tolist()
-    return np.random.default_rng(seed).choice(n, m, replace=False)
+    given key (and NumPy's `Generator.choice`)."""
+    return host_rng(key).choice(n, m, replace=False)
 
 
 @jaxsh.jit

@@ -46,6 +46,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
+from ._host_random import host_rng
 from ._results import Solution, Status, check_float, check_int as _check_int, finish, rms_pair, worst
 
 
@@ -122,6 +123,37 @@ class _GreedyState(eqx.Module):
     rss: Float[Array, ""]
 
 
+_ARGMAX_BLOCK = 1024
+
+
+def _argmax(x):
+    """`jnp.argmax` of a 1-D array (the first maximum; the first NaN if any), in two levels: the blocks' maxima,
+    then the maximum of the block that holds the first largest one.
+
+    The same index as `jnp.argmax`, 13x faster at 10⁵ entries on the CPU (XLA's argmax is a variadic
+    (value, index) reduction that does not vectorize; a plain max does): the greedy loop's picks call it
+    every centre (docs/performance.md). A plain max reduction on the CPU need not propagate NaN, so an input
+    whose sum is NaN (a NaN, or both infinities) takes `jnp.argmax` itself (a `lax.cond`; the greedy loop
+    stops on a non-finite residual, so that branch is not its path).
+    """
+    n = x.shape[0]
+    b = _ARGMAX_BLOCK
+    if n < 2 * b:
+        return jnp.argmax(x)
+    nb = n // b
+
+    def fast(x):
+        head = x[: nb * b].reshape(nb, b)
+        j = jnp.argmax(jnp.max(head, axis=1))
+        k = j * b + jnp.argmax(jax.lax.dynamic_index_in_dim(head, j, 0, keepdims=False))
+        if nb * b == n:
+            return k
+        kt = nb * b + jnp.argmax(x[nb * b :])
+        return jnp.where(x[kt] > x[k], kt, k)  # the head's index unless the tail holds a larger value
+
+    return jax.lax.cond(jnp.isnan(jnp.sum(x)), jnp.argmax, fast, x)
+
+
 @jaxsh.jit
 def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, tol, spread, n_centers: int, n_add: int,
             n_rounds: int, chunk: int):
@@ -137,7 +169,7 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
         sel = idx[:n_centers]
         c = points[sel]
         lam, poly = jaxsh.rbf_solve(c, values[sel], scale, smoothing, active=active, bounds=bounds)
-        pred = jaxsh.rbf_evaluate(c, lam, poly, points, scale, chunk=chunk)
+        pred = jaxsh.rbf_evaluate(c, lam, poly, points, scale, chunk=chunk, count=count)  # the used centres only
         res = (values - pred) * weights[:, None]
         e2 = jnp.sum(res * res, axis=1)
         rel = jnp.sqrt(jnp.mean(e2)) / denom
@@ -152,20 +184,22 @@ def _greedy(points, values, weights, scale, smoothing, idx0, count0, is_center, 
         s, _ = carry
         return (s.rel > tol) & (s.count < n_centers) & jnp.isfinite(s.rel) & (s.round + 1 < n_rounds)
 
-    ps = points * scale[None, :]  # the metric M of eq. 11
+    ps_t = (points * scale[None, :]).T  # the metric M of eq. 11; (d, N)
 
     def pick(j, carry):
         # the worst sample, preferring one outside the balls claimed by this round's earlier picks (see fit_sharing:
         # "spread"); never a centre already
         sup, base, idx, is_center, count0 = carry
-        cand = jnp.argmax(sup)
-        cand = jnp.where(sup[cand] > -jnp.inf, cand, jnp.argmax(base))
+        cand = _argmax(sup)
+        cand = jnp.where(sup[cand] > -jnp.inf, cand, _argmax(base))
         pos = count0 + j
         active = jnp.arange(idx.shape[0]) < pos
-        dc = jnp.sqrt(jnp.sum((ps[idx] - ps[cand][None, :]) ** 2, axis=1))
-        near = jnp.min(jnp.where(active, dc, jnp.inf))
-        r = jnp.sqrt(jnp.sum((ps - ps[cand][None, :]) ** 2, axis=1))
-        sup = jnp.where(r < spread * near, -jnp.inf, sup).at[cand].set(-jnp.inf)
+        # squared distances per coordinate over contiguous rows (a reduction over a minor axis of 2-5 does not vectorize)
+        pc = ps_t[:, cand]
+        dc2 = sum((ps_t[k][idx] - pc[k]) ** 2 for k in range(d))
+        lim = spread * jnp.sqrt(jnp.min(jnp.where(active, dc2, jnp.inf)))  # spread x the distance to the nearest centre
+        r2 = sum((ps_t[k] - pc[k]) ** 2 for k in range(d))
+        sup = jnp.where((lim > 0) & (r2 < lim * lim), -jnp.inf, sup).at[cand].set(-jnp.inf)
         base = base.at[cand].set(-jnp.inf)
         return sup, base, idx.at[pos].set(cand.astype(idx.dtype)), is_center.at[cand].set(True), count0
 
@@ -414,9 +448,10 @@ def fit_sharing(
     n_add = None if n_add is None else _check_int(n_add, "n_add")
     n_init = None if n_init is None else _check_int(n_init, "n_init", lo=d + 1)
     spread = check_float(spread, "spread")
-    w = jnp.ones((n,), points.dtype) if weights is None else weights
-    wv = values * w[:, None]
-    data_ss = jnp.sum(wv * wv)
+    # NumPy on the concrete copies: each eager jnp op here compiled a program of its own (15-25 ms a first call)
+    w = jnp.asarray(np.ones((n,), cp.dtype)) if weights is None else weights
+    wv = cv if cw is None else cv * cw[:, None]
+    data_ss = jnp.asarray(np.sum(wv * wv), points.dtype)
     count = n * values.shape[1]
     # degenerate data (docstring): a fallback fit and a status, never an exception
     if n < d + 1:
@@ -449,8 +484,7 @@ def fit_sharing(
         n_add = max(n_centers // 10, 1) if n_add is None else n_add
         n_init = max(n_centers // 10, d + 2) if n_init is None else n_init
         n_init = min(n_init, n_centers)
-        key = jax.random.PRNGKey(0) if key is None else key
-        idx0 = _initial_subset(cp, n_init, n_centers, key)
+        idx0 = _initial_subset(cp, n_init, n_centers, key)  # key None: the draw of PRNGKey(0)
         count0 = len(idx0)
         pad = np.zeros(n_centers + n_add, dtype=np.int32)
         pad[:count0] = idx0
@@ -461,25 +495,33 @@ def fit_sharing(
         st = _greedy(points, values, w, scale, smoothing, jnp.asarray(pad), jnp.asarray(min(count0, n_centers)),
                      jnp.asarray(is_c), t, jnp.asarray(spread, points.dtype),
                      n_centers, n_add, n_rounds, chunk)
-        k = int(st.count)
-        lam, poly = st.lam[:k], st.poly
-        idx = st.idx[:k]
-        rounds = int(st.round)
+        # trimmed on the host (a slice at each centre count k would compile a program per k)
+        st = jax.device_get(st)
+        k, rounds = int(st.count), int(st.round)
+        lam, poly, idx_np = st.lam[:k], st.poly, st.idx[:k]
         hist_c, hist_rel = st.hist_count[: rounds + 1], st.hist_rel[: rounds + 1]
-        solved = _finite(lam, poly)
-        rss = st.rss
+        solved = bool(np.all(np.isfinite(lam)) and np.all(np.isfinite(poly)))
+        rss = jnp.asarray(st.rss)
         reached = tol is None or not float(st.rel) > tol
         if single:
             lam, poly = lam[:, 0], poly[:, 0]
-        model = jaxsh.RBFModel(points[idx], lam, poly, scale, chunk=chunk)
+        idx = jnp.asarray(idx_np)
+        model = jaxsh.RBFModel(jnp.asarray(cp[idx_np]), jnp.asarray(lam), jnp.asarray(poly), scale, chunk=chunk)
     fit = _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solved, reached)
     return finish(fit, throw)
+
+
+@jaxsh.jit
+def _rms_pair(rss, data_ss, count):
+    """`rms_pair` as one program (its eager ops compiled one program each at a first call)."""
+    return rms_pair(rss, data_ss, count)
 
 
 def _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solved, reached, degenerate=False,
                  n_merged=0) -> SharingFit:
     """The `SharingFit` and its status (first match: singular, nonfinite, no_signal, ill_conditioned, tolerance)."""
-    rms, rel = rms_pair(rss, data_ss, count)
+    rss = jnp.asarray(rss)
+    rms, rel = _rms_pair(rss, jnp.asarray(data_ss, rss.dtype), jnp.asarray(count, rss.dtype))
     if not solved:
         status = Status.singular
     elif not (np.isfinite(float(rss)) and np.isfinite(float(rel))):
@@ -553,7 +595,7 @@ def _initial_subset(p, n_init, n_centers, key):
     """Random subset plus the per-coordinate extreme samples, affinely spanning (concrete)."""
     n, d = p.shape
     extremes = np.unique(np.concatenate([np.argmin(p, axis=0), np.argmax(p, axis=0)]))
-    perm = np.asarray(jax.random.permutation(key, n))
+    perm = host_rng(key).permutation(n)  # on the host: jax.random.permutation compiled a shuffle (0.2 s)
     chosen = list(dict.fromkeys(list(extremes) + list(perm[: max(n_init, 1)])))[: max(n_init, len(extremes))]
     pos = max(n_init, 1)
     while _affine_rank(p[np.asarray(chosen)]) < d and pos < n:

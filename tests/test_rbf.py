@@ -164,3 +164,31 @@ def test_rbf_auto_chunk():
         c = jaxsh.rbf_auto_chunk(k)
         assert 64 <= c <= 16384 and c & (c - 1) == 0
         assert c * k <= (1 << 21) or c == 64
+
+
+@pytest.mark.parametrize("channels", [None, 2])
+def test_evaluate_count_uses_the_leading_centres(rng, channels):
+    """`count=k` equals the brute-force interpolant of the first k centres alone, for k in and between blocks."""
+    k, d, m = 37, 5, 211  # 37 centres: 4 blocks of 10, the last padded
+    c = rng.normal(size=(k, d))
+    wshape = (k,) if channels is None else (k, channels)
+    w = rng.normal(size=wshape)
+    p = rng.normal(size=(d + 1,) + wshape[1:])
+    s = rng.uniform(0.2, 1.5, size=d)
+    x = rng.normal(size=(m, d))
+    f = jax.jit(lambda n: jaxsh.rbf_evaluate(c, w, p, x, s, chunk=64, count=n))
+    for n in (0, 1, 9, 10, 11, 25, 36, 37, 50):
+        nk = min(n, k)
+        ref = _brute(c[:nk], w[:nk], p, x, s)
+        np.testing.assert_allclose(np.asarray(f(jnp.asarray(n))), ref, rtol=1e-12, atol=1e-12, err_msg=f"count={n}")
+        # eager calls with a Python int take the same path
+        np.testing.assert_allclose(np.asarray(jaxsh.rbf_evaluate(c, w, p, x, s, count=n)), ref, rtol=1e-12,
+                                   atol=1e-12)
+    out32 = jaxsh.rbf_evaluate(c.astype(np.float32), w.astype(np.float32), p.astype(np.float32),
+                               x.astype(np.float32), s.astype(np.float32), count=20)
+    assert out32.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(out32), _brute(c[:20], w[:20], p, x, s), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="`count` must be an integer scalar"):
+        jaxsh.rbf_evaluate(c, w, p, x, s, count=2.5)
+    with pytest.raises(ValueError, match="`count` must be an integer scalar"):
+        jaxsh.rbf_evaluate(c, w, p, x, s, count=np.array([1, 2]))

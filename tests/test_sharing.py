@@ -402,3 +402,39 @@ def test_hemisphere_protocol_full():
     print(r["valid"], r["all"])
     v = r["valid"]
     assert v["sharing5_rbf2000"] < v["nosharing5"]
+
+
+def test_blocked_argmax_equals_argmax(rng):
+    """The greedy loop's two-level argmax picks `jnp.argmax`'s index: first maximum, ties, -inf, NaN, tails."""
+    f = jax.jit(S._argmax)
+    for n in (5, 2047, 2048, 4096, 5000, 10**5 + 17):
+        x = rng.normal(size=n)
+        cases = [x, np.full(n, -np.inf), np.zeros(n)]
+        t = x.copy()
+        t[[n // 3, n - 1]] = 10.0  # a tie between the head and the tail: the first wins
+        cases.append(t)
+        t = x.copy()
+        t[-1] = 10.0  # the largest in the tail only
+        cases.append(t)
+        t = x.copy()
+        t[[n // 2, n - 2]] = np.nan  # the first NaN, wherever it lies
+        cases.append(t)
+        t = x.copy()
+        t[n - 1] = np.nan  # a NaN in the tail only
+        cases.append(t)
+        t = x.copy()
+        t[[1, n // 2]] = [-np.inf, np.inf]  # both infinities (a NaN sum) and no NaN
+        cases.append(t)
+        for v in cases:
+            assert int(f(jnp.asarray(v))) == int(np.argmax(v)), n
+
+
+def test_host_draws_are_reproducible():
+    """The host draw of the initial subset depends on the key only: equal keys, equal draws; raw and typed keys."""
+    from solvers._host_random import host_rng
+
+    a = host_rng(jax.random.PRNGKey(3)).permutation(1000)
+    b = host_rng(jax.random.key(3)).permutation(1000)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(host_rng(None).permutation(50), host_rng(jax.random.PRNGKey(0)).permutation(50))
+    assert not np.array_equal(a, host_rng(jax.random.PRNGKey(4)).permutation(1000))
