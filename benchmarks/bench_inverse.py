@@ -47,19 +47,23 @@ What is timed (wall clock; "first" = first call incl. tracing + XLA compile,
    jaxsh: ``solvers.factorize`` (searches on a 40,000-pixel subset, final
    solves on all pixels; mu by grid + zooms, ks by golden section per
    channel; sigma from the recovered source, eq. 26 with the band-limit
-   correction; joint simplex refinement of (ks, sigma) with the source as a
-   delta).
+   correction; joint refinement of (ks, sigma) with the source as a delta:
+   ks profiled per channel by golden section inside zooming 16-value grids in
+   log sigma, one batched pass over the pixels per grid).
    scipy: the same algorithm with the same speed-ups (normal-equation blocks
    formed once per mu with numpy BLAS, the SH of the mirror directions
-   computed once -- jaxsh recomputes them per mu -- and the same pixel subset):
+   computed once, as jaxsh's mirror table does, and the same pixel subset):
    mu by the same 9-point grid then ``scipy.optimize.minimize(Nelder-Mead)``,
    ks per channel by ``scipy.optimize.minimize_scalar(method="bounded")`` with
    ``scipy.linalg.cho_solve`` (``lstsq`` fallback) for the 169 lighting
    coefficients, sigma by a numpy port of ``solvers.find_source`` (lat-long
    synthesis, peak, cap / annulus, ``scipy.optimize.brentq`` on the
-   band-limited model), and the joint refinement by ``minimize(Nelder-Mead)``
-   over (logit ks, log sigma) with 170-unknown solves per channel. No standard
-   errors.
+   band-limited model), and the joint refinement over (ks, sigma) with the
+   same profiling (ks per channel by ``minimize_scalar(method="bounded")``
+   with 170-unknown solves, the source's products with the rows formed once
+   per sigma) and the same first 16-value grid in log sigma, then scipy's
+   sequential ``minimize_scalar(method="bounded")`` in log sigma between the
+   best value's neighbours (xatol 1e-7). No standard errors.
 
 Accuracy columns (same truth for both): relative error of the recovered
 (filtered, l <= 12) lighting coefficients vs the true lighting filtered by
@@ -302,7 +306,9 @@ def _spd_solve(a, r):
 
 
 def _channel_rss(rows, g, c, ks, filt=None, src=None):
-    """RSS of channel c for kd = 1 - ks; unknowns L_lm (filtered by filt) [+ one source energy]."""
+    """RSS of channel c for kd = 1 - ks; unknowns L_lm (filtered by filt) [+ one source energy].
+
+    `src`: the source's products with the rows, formed once per sigma (`_source_products`)."""
     kd = 1.0 - ks
     nc = g["ss"].shape[0]
     f = np.ones(nc) if filt is None else filt
@@ -315,20 +321,26 @@ def _channel_rss(rows, g, c, ks, filt=None, src=None):
     r = ks * f * g["sb"][:, c]
     r[:9] += kd * rows.db[:, c]
     if src is not None:
-        fd, fs = src
-        col = kd * fd + ks * fs
-        cross = ks * (g["S"].T @ col) * f
-        cross[:9] += kd * (rows.Dn.T @ col)
-        a = np.block([[a, cross[:, None]], [cross[None, :], np.array([[col @ col]])]])
-        r = np.concatenate([r, [col @ rows.b[:, c]]])
+        # the source's column kd fd + ks fs against the specular, diffuse columns, itself and the data
+        cross = ks * f * (kd * src["S_fd"] + ks * src["S_fs"])
+        cross[:9] += kd * (kd * src["D_fd"] + ks * src["D_fs"])
+        cc = kd * kd * src["fd_fd"] + 2 * kd * ks * src["fd_fs"] + ks * ks * src["fs_fs"]
+        a = np.block([[a, cross[:, None]], [cross[None, :], np.array([[cc]])]])
+        r = np.concatenate([r, [kd * src["fd_b"][c] + ks * src["fs_b"][c]]])
     x = _spd_solve(a, r)
     return max(rows.bb[c] - x @ r, 0.0), x
 
 
-def _best_ks(rows, g, c):
-    res = scipy.optimize.minimize_scalar(lambda k: _channel_rss(rows, g, c, k)[0], bounds=(1e-6, 1.0),
+def _source_products(rows, g, fd, fs):
+    """What `_channel_rss` needs of the source's diffuse and specular rows (fd, fs), for every K_s."""
+    return dict(S_fd=g["S"].T @ fd, S_fs=g["S"].T @ fs, D_fd=rows.Dn.T @ fd, D_fs=rows.Dn.T @ fs, fd_fd=fd @ fd,
+                fd_fs=fd @ fs, fs_fs=fs @ fs, fd_b=fd @ rows.b, fs_b=fs @ rows.b)
+
+
+def _best_ks(rows, g, c, filt=None, src=None):
+    res = scipy.optimize.minimize_scalar(lambda k: _channel_rss(rows, g, c, k, filt, src)[0], bounds=(1e-6, 1.0),
                                          method="bounded", options=dict(xatol=1e-8))
-    f_hi = _channel_rss(rows, g, c, 1.0)[0]
+    f_hi = _channel_rss(rows, g, c, 1.0, filt, src)[0]
     return (1.0, f_hi) if f_hi < res.fun else (res.x, res.fun)
 
 
@@ -422,24 +434,31 @@ def scipy_factorize(n, v, b, sub_idx, lmax):
     d, sigma0 = np_find_source(filtered)
     gs = rs.gram(mu)
 
-    def joint(p):
-        k = 1.0 / (1.0 + np.exp(-p[:C]))
-        sigma = np.exp(p[C])
+    def profiled(log_s):
+        # the joint RSS at sigma with each channel's ks profiled out (the channels decouple once sigma is fixed)
+        sigma = np.exp(log_s)
         filt = np.exp(-((sigma * deg) ** 2))
-        src = _fast_cols(rs, mu, sigma, d)
-        return sum(_channel_rss(rs, gs, c, k[c], filt, src)[0] for c in range(C)) / rs.bb.sum()
+        src = _source_products(rs, gs, *_fast_cols(rs, mu, sigma, d))
+        best = [_best_ks(rs, gs, c, filt, src) for c in range(C)]
+        return sum(r for _, r in best) / rs.bb.sum(), np.array([k for k, _ in best])
 
-    kc = np.clip(ks, 1e-4, 1 - 1e-4)
-    p0 = np.concatenate([np.log(kc / (1 - kc)), [np.log(sigma0)]])
-    nm2 = scipy.optimize.minimize(joint, p0, method="Nelder-Mead", options=dict(xatol=1e-7, fatol=1e-12, maxiter=200))
-    ks = 1.0 / (1.0 + np.exp(-nm2.x[:C]))
-    sigma = np.exp(nm2.x[C])
+    # sigma as in solvers.factorize: a 16-value grid in log sigma over eq. 26's range [1e-3, 2], then (scipy's
+    # sequential 1-D search, not further batched grids) a bounded minimization between the best value's neighbours
+    tg = np.log(1e-3) + (np.log(2.0) - np.log(1e-3)) * np.arange(1, 17) / 17
+    vals = [profiled(t)[0] for t in tg]
+    k = int(np.nanargmin(vals))
+    lo, hi = tg[max(k - 1, 0)], tg[min(k + 1, len(tg) - 1)]
+    nm2 = scipy.optimize.minimize_scalar(lambda t: profiled(t)[0], bounds=(lo, hi), method="bounded",
+                                         options=dict(xatol=1e-7))
+    t_best = nm2.x if nm2.fun <= vals[k] else tg[k]
+    ks = profiled(t_best)[1]
+    sigma = np.exp(t_best)
     filt = np.exp(-((sigma * deg) ** 2))
-    src = _fast_cols(rf, mu, sigma, d)
+    src = _source_products(rf, gf, *_fast_cols(rf, mu, sigma, d))
     xs = [_channel_rss(rf, gf, c, ks[c], filt, src)[1] for c in range(C)]
     return dict(ks=ks, kd=1 - ks, mu=mu, sigma=sigma, filtered=filtered,
                 slow=np.stack([x[:-1] for x in xs], 1), energy=np.array([x[-1] for x in xs]),
-                iterations=nm.nfev + 9 + nm2.nfev)
+                iterations=nm.nfev + 9 + len(tg) + nm2.nfev)
 
 
 # =========================================================================== capture, timing, main

@@ -57,10 +57,14 @@ decreases with $\\sigma$). For $l^* \\to \\infty$ this is eq. 26.
 **Joint refinement (optional).** With the source found, the lighting is
 modelled as slow SH up to $l^*$ (filtered by $e^{-(\\sigma l)^2}$, eq. 22) plus
 the source as a delta of unknown energy (eq. 23); the model is linear in
-the lighting given $(K_s, \\sigma)$, and `optimistix.NelderMead` over
-$(\\mathrm{logit}\\,K_s$ per channel$, \\log\\sigma)$, with $\\mu$ kept at its
-stage-1 value, minimizes the profiled residual on the search subset
-(variable projection). The final solve uses all pixels; the standard errors
+the lighting given $(K_s, \\sigma)$, and the profiled residual (variable
+projection) is minimized over $(K_s$ per channel$, \\sigma)$ on the search
+subset, with $\\mu$ kept at its stage-1 value, by the nested searches of
+stage 1: once $\\sigma$ is fixed the channels decouple, so each $K_s$ is
+profiled out by `optimistix.GoldenSearch`, and $\\log\\sigma$ is searched by
+zooming grids of 16 values (the first over eq. 26's range $[10^{-3}, 2]$,
+each next one between the best value's neighbours), one batched pass over
+the pixels per grid (`_refine_search`). The final solve uses all pixels; the standard errors
 of $(K_s, \\sigma)$ come from the Hessian of the profiled RSS there (by central
 differences, `_profiled_hessian`), that of $\\mu$ from the stage-1 parabola.
 """
@@ -84,7 +88,7 @@ from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_regi
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
                                 mirror_table, pinv_psd, solve_spd_small)
-from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
+from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 class SourceEstimate(eqx.Module):
@@ -119,14 +123,15 @@ class FactorizationResult(Solution):
     - `source`: `SourceEstimate` (or None when `find_sigma=False`).
     - `std_errors`: `TorranceSparrow` (from the Jacobian of the profiled
       residual of the final stage; `kd` errors equal `ks` errors).
-    - `status`: with the refinement, the worst of its simplex's outcome
-      (`status_from_optimistix`), `nonfinite` and `no_signal`; without it,
+    - `status`: with the refinement, the worst of its search's outcome
+      (`max_steps_reached` when the σ grids stop wider than the tolerance),
+      `nonfinite` and `no_signal`; without it,
       the status of the eq.-25 solve of stage 1 (as `inverse_lighting`).
     - `iterations`: the $\\mu$ candidates evaluated (23 with `fresnel`) plus
-      the refinement's simplex steps.
+      the $\\sigma$ values the refinement evaluated.
     - `rms`, `rel_rms` (never NaN) of the final stage, on all pixels.
-    - `stats`: `num_mu_candidates`, `num_steps_simplex` (0 without the
-      refinement), `num_steps_golden` (the $K_s$ searches of the final
+    - `stats`: `num_mu_candidates`, `num_sigma_candidates` (the refinement's
+      $\\sigma$ values, 16 per grid; 0 without the refinement), `num_steps_golden` (the $K_s$ searches of the final
       stage-1 solve, per channel), `num_steps_bisection` (eq. 26; 0 without
       `find_sigma`), `n_obs`.
     - `dual`: with `lighting_method="dual"`, the `DualLightingResult` of the
@@ -442,8 +447,9 @@ def factorize(
     grid in $\\log(\\mu - 1)$, two 7-point zooms and a parabola (23
     evaluations; none with `fresnel=False`), each evaluation running a
     per-channel `optimistix.GoldenSearch` over $K_s$; `find_source` then gives
-    $\\sigma$ (eq. 26, `optimistix.Bisection`); `refine` runs
-    `optimistix.NelderMead` over $(K_s, \\sigma)$ with $\\mu$ fixed.
+    $\\sigma$ (eq. 26, `optimistix.Bisection`); `refine` minimizes the
+    profiled residual of the joint model over $(K_s, \\sigma)$ with $\\mu$ fixed
+    (zooming grids in $\\log\\sigma$, a `GoldenSearch` over $K_s$ per channel).
 
     **Arguments:**
 
@@ -469,8 +475,9 @@ def factorize(
       2·`lmax` (8·(2·`lmax`+1)² bytes per sample: 200 MB for 40,000 samples
       at `lmax` 12); where that would exceed 512 MB it forms each
       candidate's blocks by direct sums instead (same result, slower).
-    - `max_steps`, `rtol`, `atol`: the refinement simplex (tolerances
-      default to 1e-7).
+    - `max_steps`, `rtol`, `atol`: the refinement's search in
+      $t = \\log\\sigma$: at most `max_steps` grids, until their spacing is
+      within `atol + rtol |t|` (tolerances default to 1e-7).
     - `chunk`: pixels per chunk of the normal-equation accumulation.
     - `lighting_method`: the inverse lighting inside the first stage's
       objective. `"sh"` (default): the SH coefficients of eq. 25 to `lmax`,
@@ -614,7 +621,7 @@ def factorize(
     inf = jnp.full_like(ks, jnp.inf)
     std_inf = TorranceSparrow.unchecked(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
     zero = jnp.asarray(0)
-    stats = {"num_mu_candidates": jnp.asarray(its1), "num_steps_simplex": zero, "num_steps_golden": golden_steps,
+    stats = {"num_mu_candidates": jnp.asarray(its1), "num_sigma_candidates": zero, "num_steps_golden": golden_steps,
              "num_steps_bisection": zero, "n_obs": res1.stats["n_obs"]}
 
     def result(brdf, lighting, source, std, status, iterations, rms, rel, stats):
@@ -648,7 +655,7 @@ def factorize(
             s2 = float(rms) ** 2 * nobs / max(nobs - (jaxsh.num_coeffs(lmax) + 1) * obs.n_channels - 2 * obs.n_channels - 2, 1)
             se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
     std = TorranceSparrow.unchecked(se_ks, se_ks, se_mu, se_sigma)
-    stats["num_steps_simplex"] = its2
+    stats["num_sigma_candidates"] = its2
     return result(brdf, lighting, src, std, status, iterations, rms, rel, stats)
 
 
@@ -789,7 +796,8 @@ class _Joint(eqx.Module):
     bl: _Blocks
     # (9 + n, N): the diffuse and the (unfiltered) specular rows of eq. 25, stacked, pixels last: `rows @ x` is a
     # plain matrix-vector product (`rows.T @ x` on an (N, 9 + n) array made XLA copy a transpose per evaluation
-    # inside the simplex's loop, 57 MB at 40,000 samples: 10.5 ms per step against 3.7 ms for its two evaluations)
+    # inside the former Nelder-Mead loop, 57 MB at 40,000 samples: 10.5 ms per step against 3.7 ms for its two
+    # evaluations)
     rows: Array
     w: Array
     b: Array
@@ -910,14 +918,14 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
-    p, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
+    ks, sigma, status, its = _refine_search(jt_sub, mu, d, lmax, max_steps, rtol, atol)
     if sub is obs:
         jt = jt_sub
     elif rows_obs is not None and bl_obs is not None:
         jt = _joint_padded(obs, bl_obs, rows_obs, column)
     else:
         jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
-    return _refine_final(jt, p, mu, d, lmax, status, its)
+    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its)
 
 
 def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
@@ -949,15 +957,24 @@ def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _
     return _Joint(_first(bl), rows, o.weights, o.values, o.normals, o.views, None)
 
 
-@jaxsh.jit
 def _joint_padded(o: Observations, bl, rows, column) -> _Joint:
     """`_Joint` of all pixels from the rows `_all_pixel_blocks` made, `(9 + n, N + pad)`: the pixels are padded to the
-    rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum."""
-    pad = rows.shape[1] - o.n_samples
+    rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum.
+
+    The rows go into the `_Joint` as they are, outside any program (an input array returned by a jitted
+    function comes back as a copy: 182 MB at 3 × 256², 0.06-0.2 s measured)."""
+    b1, w, b, n, v, fvis = _pad_joint(o, bl, rows.shape[1], column)
+    return _Joint(b1, rows, w, b, n, v, fvis)
+
+
+@jaxsh.jit
+def _pad_joint(o: Observations, bl, width: int, column):
+    """The fields of `_joint_padded`'s `_Joint` but its rows, padded to `width` pixels."""
+    pad = width - o.n_samples
     up = jnp.zeros((pad, 3), o.normals.dtype).at[:, 2].set(1.0)
     fvis = None if column is None else jnp.pad(o.fast_visibility[:, column], (0, pad))
-    return _Joint(_first(bl), rows, jnp.pad(o.weights, (0, pad)), jnp.pad(o.values, ((0, pad), (0, 0))),
-                  jnp.concatenate([o.normals, up]), jnp.concatenate([o.views, up]), fvis)
+    return (_first(bl), jnp.pad(o.weights, (0, pad)), jnp.pad(o.values, ((0, pad), (0, 0))),
+            jnp.concatenate([o.normals, up]), jnp.concatenate([o.views, up]), fvis)
 
 
 @jaxsh.jit
@@ -965,27 +982,108 @@ def _joint_jit(o, bl, mu, lmax, chunk, rcond, column):
     return _joint(o, bl, mu, lmax, chunk, rcond, column)
 
 
-def _unpack(p, c):
-    return jax.nn.sigmoid(p[:c]), jnp.exp(p[c])
+def _joint_golden_parts(jt: _Joint, sp: _SourceParts, sigma, lmax) -> _GoldenParts:
+    """The $K_s$-independent parts of the joint RSS of `_joint_rss` at one σ, per channel (leading axis C), in
+    the form of `_golden_ks`'s `_GoldenParts` with the source's energy as a tenth unknown: `_reduced_rss` of
+    channel c at $K_s$ is `_joint_rss(jt, sp, ks, sigma)[0][c]` for `ks[c]` $= K_s$ (`tests/test_inverse.py`).
+
+    Every term of `_joint_rss` is a quadratic form in $(K_d, K_s)$: $A_{11} = K_d^2 a_{dd} + K_dK_s a_{ds} +
+    K_s^2 a_{ss}$ (its tenth row and column from the source's rows), $Z = K_d e_d + K_s e_s$ `(m, 10)`,
+    $r_1 = K_d r_d + K_s r_s$; only the source's specular row depends on σ (one product with the rows)."""
+    filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
+    f1 = filt[:9]
+    fs = sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
+    wfs = jt.w * fs
+    rows_fs = jt.rows @ wfs
+    g = jt.bl.g
+    c = g.bb.shape[0]
+    dfd, dfs = sp.rows_fd[:9], rows_fs[:9]
+    sfd, sfs = sp.rows_fd[9:18] * f1, rows_fs[9:18] * f1  # the source against the filtered l <= 2 columns
+    ds1 = g.ds[:, :9] * f1[None, :]
+
+    def bordered(a, col, corner):  # [[a, col], [col^T, corner]]: (10, 10)
+        return jnp.concatenate([jnp.concatenate([a, col[:, None]], 1),
+                                jnp.concatenate([col, corner[None]])[None, :]], 0)
+
+    def each(a):
+        return jnp.broadcast_to(a, (c,) + a.shape)
+
+    e_b = sp.e_b.T  # (C, m)
+    return _GoldenParts(
+        each(bordered(g.dd, dfd, sp.fd_fd)),
+        each(bordered(ds1 + ds1.T, dfs + sfd, 2.0 * jnp.sum(wfs * sp.fd))),
+        each(bordered(f1[:, None] * g.ss[:9, :9] * f1[None, :], sfs, jnp.sum(wfs * fs))),
+        each(jnp.concatenate([sp.e_d, sp.h_fd[:, None]], 1)),
+        each(jnp.concatenate([sp.e_s * f1[None, :], (jt.bl.h22 @ rows_fs[18:])[:, None]], 1)),
+        jnp.concatenate([g.db.T, sp.fd_b[:, None]], 1),
+        jnp.concatenate([(f1[:, None] * g.sb[:9]).T, (wfs @ jt.b)[:, None]], 1),
+        e_b,
+        g.bb - jnp.sum(e_b * e_b, -1),
+    )
+
+
+# The refinement's search in log σ: the range of eq. 26's bisection (`find_source`), `_SIGMA_POINTS` values a zoom.
+_SIGMA_RANGE = (1e-3, 2.0)
+_SIGMA_POINTS = 16
+
+
+def _profiled_sigma(jt: _Joint, sp: _SourceParts, t, lmax):
+    """The joint RSS at σ = exp(t) with each channel's $K_s$ profiled out (`golden_ks_unit` per channel, as in
+    stage 1), relative to the data's: `(rel, ks (C,))`."""
+    parts = _joint_golden_parts(jt, sp, jnp.exp(t), lmax)
+    dt = jt.b.dtype
+    ks, rss, _ = jax.vmap(lambda p: golden_ks_unit(lambda k, _: _reduced_rss(p, k), dt, 1e-11, 1e-11, 100))(parts)
+    return jnp.sum(rss) / jnp.sum(jt.bl.g.bb), ks
+
+
+class _Zoom(eqx.Module):
+    t: Array  # () the best log sigma so far
+    val: Array  # () its profiled relative RSS
+    ks: Array  # (C,) its K_s
+    h: Array  # () half the width of the bracket around t
+    n: Array  # () zooms done
 
 
 @jaxsh.jit
-def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
-    c = ks0.shape[0]
+def _refine_search(jt, mu, d, lmax, max_steps, rtol, atol):
+    """Minimize the joint RSS (`_joint_rss`) over $(K_s, \\sigma)$ on the search subset.
 
+    Once σ is fixed the channels decouple, so each channel's $K_s$ is profiled out (`_profiled_sigma`:
+    `optimistix.GoldenSearch` over $K_s \\in [10^{-6}, 1]$ and the end point 1, as in stage 1), and
+    $t = \\log\\sigma$ is searched like stage 1's $\\mu$, by zooming grids: `_SIGMA_POINTS` evenly spaced
+    values inside the bracket, first all of `_SIGMA_RANGE` (eq. 26's range), then the best point's neighbours
+    (the bracket shrinks 8.5× a zoom), until the spacing is within `atol + rtol |t|` or `max_steps` zooms.
+    Each zoom evaluates its values in one batch (one pass over the rows for all of them, `vmap`); the loop
+    holds one copy of the objective. Returns `ks (C,)`, `sigma`, the status and the values evaluated."""
     dt = jt.b.dtype
-    pdt = jnp.asarray(0.0).dtype  # optimistix's simplex state uses the default float dtype
+    c = jt.b.shape[1]
     sp = _source_parts(jt, mu, d)
+    lo, hi = np.log(_SIGMA_RANGE[0]), np.log(_SIGMA_RANGE[1])
+    frac = jnp.arange(1, _SIGMA_POINTS + 1, dtype=dt) / (_SIGMA_POINTS + 1)
+    prof = jax.vmap(lambda t: _profiled_sigma(jt, sp, t, lmax))
 
-    def objective(p, _):
-        ks, sigma = _unpack(p.astype(dt), c)
-        rss, _, _ = _joint_rss(jt, sp, ks, sigma, lmax)
-        return (jnp.sum(rss) / jnp.sum(jt.bl.g.bb)).astype(pdt)
+    def tol(z):
+        return atol + rtol * jnp.abs(z.t)
 
-    ks_c = jnp.clip(ks0, 1e-4, 1 - 1e-4)
-    p0 = jnp.concatenate([jnp.log(ks_c / (1 - ks_c)), jnp.log(sigma0)[None]]).astype(pdt)
-    sol = optx.minimise(objective, optx.NelderMead(rtol=rtol, atol=atol), p0, max_steps=max_steps, throw=False)
-    return sol.value.astype(dt), status_from_optimistix(sol.result), sol.stats["num_steps"]
+    def cond(z):
+        return (z.h > tol(z)) & (z.n < max_steps) & ~jnp.isnan(z.val)
+
+    def body(z):
+        a, b = jnp.maximum(z.t - z.h, lo), jnp.minimum(z.t + z.h, hi)
+        ts = a + (b - a) * frac
+        vals, ks = prof(ts)
+        vals = jnp.where(jnp.isnan(vals), jnp.inf, vals)
+        k = jnp.argmin(vals)
+        better = vals[k] < z.val
+        return _Zoom(jnp.where(better, ts[k], z.t), jnp.where(better, vals[k], z.val),
+                     jnp.where(better, ks[k], z.ks), (b - a) / (_SIGMA_POINTS + 1), z.n + 1)
+
+    z0 = _Zoom(jnp.asarray(0.5 * (lo + hi), dt), jnp.asarray(jnp.inf, dt), jnp.full((c,), jnp.nan, dt),
+               jnp.asarray(0.5 * (hi - lo), dt), jnp.asarray(0))
+    z = jax.lax.while_loop(cond, body, z0)
+    status = Status.where(jnp.isfinite(z.val), Status.where(z.h <= tol(z), Status.converged, Status.max_steps_reached),
+                          Status.nonfinite)
+    return z.ks, jnp.exp(z.t), status, z.n * _SIGMA_POINTS
 
 
 _FD_STEP = 1e-3  # relative step of the central differences in `_profiled_hessian`
@@ -1023,9 +1121,8 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
 
 
 @jaxsh.jit
-def _refine_final(jt, p, mu, d, lmax, status, its):
+def _refine_final(jt, ks, sigma, mu, d, lmax, status, its):
     c = jt.b.shape[1]
-    ks, sigma = _unpack(p, c)
     sp = _source_parts(jt, mu, d)
     hess, (rss, x1, x2) = _profiled_hessian(jt, sp, ks, sigma, lmax)
     nobs = jt.bl.g.count * c

@@ -110,9 +110,13 @@ def _golden_ks_dual(mo: _DualMoments, rtol: float, atol: float, max_steps: int):
 def golden_ks_unit(rss, dt, rtol: float, atol: float, max_steps: int):
     """The $K_s \\in [10^{-6}, 1]$ minimizing the scalar `rss(ks, None)`: `optimistix.GoldenSearch`, and the
     end point $K_s = 1$ (a pure mirror) checked as well. Returns `ks`, `rss(ks)`, `num_steps`."""
-    sol = optx.minimise(rss, optx.GoldenSearch(rtol=rtol, atol=atol), jnp.asarray(0.5, dt),
-                        options=dict(lower=1e-6, upper=1.0), max_steps=max_steps, throw=False)
-    ks = jnp.clip(sol.value, 1e-6, 1.0)
+    # searched in u in [0, 1], K_s = 1e-6 + u (1 - 1e-6): optimistix 0.1.0's GoldenSearch places its first point at
+    # (upper - lower) / phi^2 without adding `lower` (optimistix issue #236); from lower = 1e-6 that broke the golden
+    # ratio of the bracket, and the search ran to `max_steps` (100 steps against 51 at tolerance 1e-11, measured)
+    lo = 1e-6
+    sol = optx.minimise(lambda u, a: rss(lo + u * (1.0 - lo), a), optx.GoldenSearch(rtol=rtol, atol=atol),
+                        jnp.asarray(0.5, dt), options=dict(lower=0.0, upper=1.0), max_steps=max_steps, throw=False)
+    ks = lo + jnp.clip(sol.value, 0.0, 1.0) * (1.0 - lo)
     # the estimate and the end point in one batched evaluation: one copy of `rss` in the program, not two
     # (each copy of `factorize`'s eliminating RSS costs ~0.15 s of XLA compilation)
     f, f_hi = jax.vmap(lambda k: rss(k, None))(jnp.stack([ks, jnp.ones((), dt)]))

@@ -183,31 +183,61 @@ def grams_at_mus(tab: MirrorTable, mus, lmax: int) -> Gram:
     $O(N(2l^*+1)^2 + Q(l^*+1)^4)$, $Q = (2l^*+1)(4l^*+1)$, instead of $O(N(l^*+1)^4)$: at $l^* = 12$ and
     $N = 40{,}000$, 9 $\\mu$ in 81 ms against 9 × 56 ms for `accumulate_gram` (measured; the table itself,
     made once per pixel set, 136 ms). The other blocks are plain sums; the DS and SB blocks of all $\\mu$ are
-    one product with the $l \\le l^*$ harmonics.
+    one product with the $l \\le l^*$ harmonics, accumulated over chunks of pixels (`_weighted_products`).
     """
     nc = (lmax + 1) ** 2
     dt = tab.b.dtype
     k, c = mus.shape[0], tab.b.shape[1]
-    npx = tab.d.shape[0]
-    f = jax.vmap(lambda mu: jaxsh.fresnel_normalized(tab.cos_o, mu), out_axes=1)(mus)  # (N, K)
-    wf = (tab.w * tab.s_scale)[:, None] * f  # w F V: the s rows' factor times the weight
-    g2 = wf * (tab.s_scale[:, None] * f)  # w F^2 V^2
-    y = tab.y2[:nc]  # (n, N)
-    # one product for the DS and SB blocks of every mu
-    rhs = jnp.concatenate([(tab.d[:, None, :] * wf[:, :, None]).reshape(npx, k * 9),
-                           (wf[:, :, None] * tab.b[:, None, :]).reshape(npx, k * c)], 1)
-    lo = y @ rhs  # (n, 9K + CK)
-    hq = (tab.yq @ (tab.y2 @ g2)) * tab.wq[:, None]  # (Q, K): H at the nodes times the weights
+    f = jax.vmap(lambda mu: jaxsh.fresnel_normalized(tab.cos_o, mu))(mus)  # (K, N)
+    wf = (tab.w * tab.s_scale)[None, :] * f  # w F V: the s rows' factor times the weight
+    g2 = wf * (tab.s_scale[None, :] * f)  # w F^2 V^2
+    # the DS and SB blocks of every mu: Y_{<= l*} against [d, b] weighted by each mu's w F V
+    lo = _weighted_products(tab.y2, nc, wf, jnp.concatenate([tab.d, tab.b], 1).T)  # (n, K, 9 + C)
+    hq = (tab.yq @ (tab.y2 @ g2.T)) * tab.wq[:, None]  # (Q, K): H at the nodes times the weights
     yq = tab.yq[:, :nc]
     ss = jnp.einsum("qa,qk,qb->kab", yq, hq, yq)
-    ds = lo[:, : 9 * k].reshape(nc, k, 9).transpose(1, 2, 0)
-    sb = lo[:, 9 * k :].reshape(nc, k, c).transpose(1, 0, 2)
+    ds = lo[:, :, :9].transpose(1, 2, 0)
+    sb = lo[:, :, 9:].transpose(1, 0, 2)
     wd = tab.d * tab.w[:, None]
     dd, db = wd.T @ tab.d, wd.T @ tab.b
     bb = jnp.sum(tab.w[:, None] * tab.b * tab.b, 0)
     count = jnp.sum((tab.w > 0).astype(dt))
     rep = lambda a: jnp.broadcast_to(a, (k,) + a.shape)  # noqa: E731
     return Gram(rep(dd), ds, ss, rep(db), sb, rep(bb), rep(count))
+
+
+_PRODUCT_CHUNK = 2048  # pixels per step of `_weighted_products`
+
+
+def _weighted_products(y, n: int, wf, m):
+    """$\\sum_i Y_{a}(i)\\,wf_k(i)\\,m_j(i)$ for the first `n` rows $a$ of `y` `(n_2, N)`, every row $k$ of `wf`
+    `(K, N)` and $j$ of `m` `(J, N)`: `(n, K, J)`.
+
+    One product of `y[:n]` with the `(N, K·J)` weighted right-hand side, accumulated over chunks of
+    `_PRODUCT_CHUNK` pixels (a `fori_loop`), so that neither the slice `y[:n]` (a copy of the table's leading
+    rows) nor the whole right-hand side is ever formed: at $N = 40{,}000$, $K = 9$, $l^* = 12$ the blocks of
+    one round took 57-75 ms as one product and take 22 ms so (fresh buffers of tens of MB each cost their
+    page faults on every call; docs/performance.md)."""
+    npx = y.shape[1]
+    kj = wf.shape[0] * m.shape[0]
+    p = _PRODUCT_CHUNK
+
+    def part(yc, wc, mc):
+        rhs = (wc[:, None, :] * mc[None, :, :]).reshape(kj, -1)
+        return jax.lax.dot_general(yc, rhs, (((1,), (1,)), ((), ())))
+
+    def body(i, acc):
+        cols = lambda a: jax.lax.dynamic_slice_in_dim(a, i * p, p, 1)  # noqa: E731
+        return acc + part(jax.lax.dynamic_slice(y, (0, i * p), (n, p)), cols(wf), cols(m))
+
+    nb = npx // p
+    acc = jnp.zeros((n, kj), y.dtype)
+    if nb:
+        acc = jax.lax.fori_loop(0, nb, body, acc)
+    t0 = nb * p
+    if t0 < npx:
+        acc = acc + part(y[:n, t0:], wf[:, t0:], m[:, t0:])
+    return acc.reshape(n, wf.shape[0], m.shape[0])
 
 
 def channel_system(g: Gram, kd, ks):
