@@ -918,7 +918,7 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
-    ks, sigma, status, its = _refine_search(jt_sub, mu, d, lmax, max_steps, rtol, atol)
+    ks, sigma, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
     if sub is obs:
         jt = jt_sub
     elif rows_obs is not None and bl_obs is not None:
@@ -1045,7 +1045,7 @@ class _Zoom(eqx.Module):
 
 
 @jaxsh.jit
-def _refine_search(jt, mu, d, lmax, max_steps, rtol, atol):
+def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     """Minimize the joint RSS (`_joint_rss`) over $(K_s, \\sigma)$ on the search subset.
 
     Once σ is fixed the channels decouple, so each channel's $K_s$ is profiled out (`_profiled_sigma`:
@@ -1054,7 +1054,9 @@ def _refine_search(jt, mu, d, lmax, max_steps, rtol, atol):
     values inside the bracket, first all of `_SIGMA_RANGE` (eq. 26's range), then the best point's neighbours
     (the bracket shrinks 8.5× a zoom), until the spacing is within `atol + rtol |t|` or `max_steps` zooms.
     Each zoom evaluates its values in one batch (one pass over the rows for all of them, `vmap`); the loop
-    holds one copy of the objective. Returns `ks (C,)`, `sigma`, the status and the values evaluated."""
+    holds one copy of the objective. Where no value is finite (data without signal) the search stops after
+    the first grid and returns the stage-1 `ks0`, `sigma0` (clipped to the ranges) with the status `nonfinite`.
+    Returns `ks (C,)`, `sigma`, the status and the values evaluated."""
     dt = jt.b.dtype
     c = jt.b.shape[1]
     sp = _source_parts(jt, mu, d)
@@ -1066,7 +1068,7 @@ def _refine_search(jt, mu, d, lmax, max_steps, rtol, atol):
         return atol + rtol * jnp.abs(z.t)
 
     def cond(z):
-        return (z.h > tol(z)) & (z.n < max_steps) & ~jnp.isnan(z.val)
+        return (z.h > tol(z)) & (z.n < max_steps) & ((z.n == 0) | jnp.isfinite(z.val))
 
     def body(z):
         a, b = jnp.maximum(z.t - z.h, lo), jnp.minimum(z.t + z.h, hi)
@@ -1078,9 +1080,14 @@ def _refine_search(jt, mu, d, lmax, max_steps, rtol, atol):
         return _Zoom(jnp.where(better, ts[k], z.t), jnp.where(better, vals[k], z.val),
                      jnp.where(better, ks[k], z.ks), (b - a) / (_SIGMA_POINTS + 1), z.n + 1)
 
-    z0 = _Zoom(jnp.asarray(0.5 * (lo + hi), dt), jnp.asarray(jnp.inf, dt), jnp.full((c,), jnp.nan, dt),
+    z0 = _Zoom(jnp.asarray(0.5 * (lo + hi), dt), jnp.asarray(jnp.inf, dt), jnp.zeros((c,), dt),
                jnp.asarray(0.5 * (hi - lo), dt), jnp.asarray(0))
     z = jax.lax.while_loop(cond, body, z0)
+    # no finite value: the stage-1 estimate (finite where it is)
+    t_fb = jnp.clip(jnp.where(jnp.isfinite(sigma0) & (sigma0 > 0), jnp.log(jnp.abs(sigma0)), 0.5 * (lo + hi)), lo, hi)
+    ks_fb = jnp.clip(jnp.where(jnp.isfinite(ks0), ks0, 0.5), 1e-6, 1.0)
+    found = jnp.isfinite(z.val)
+    z = _Zoom(jnp.where(found, z.t, t_fb), z.val, jnp.where(found, z.ks, ks_fb), z.h, z.n)
     status = Status.where(jnp.isfinite(z.val), Status.where(z.h <= tol(z), Status.converged, Status.max_steps_reached),
                           Status.nonfinite)
     return z.ks, jnp.exp(z.t), status, z.n * _SIGMA_POINTS
