@@ -287,7 +287,7 @@ def _terms(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fa
         n = jnp.where(mask[:, None], n, up)
         v = jnp.where(mask[:, None], v, up)
     table = None if rows is None else (_slow_table(slow_sh, sigma, rows), rows)
-    return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, 8192, table)
+    return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, 256, table)
 
 
 @jit

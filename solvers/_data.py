@@ -261,7 +261,7 @@ def view_lightings(obs: Observations, lighting, name: str = "lighting") -> list[
     return lights
 
 
-def practical_terms_for(obs: Observations, lighting, chunk: int = 8192) -> jaxsh.PracticalTerms:
+def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.PracticalTerms:
     """`jaxsh.practical_terms` of the observed pixels under `lighting`, with the visibility terms of `obs`.
 
     `lighting` is one `Lighting` for every view, or a sequence of one
