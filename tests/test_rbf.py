@@ -14,16 +14,18 @@ def _brute(centers, weights, poly, points, scale):
     return d @ weights + poly[0] + points @ poly[1:]
 
 
+def _random_model(rng, k, d, m, channels):
+    """Centres `(k, d)`, weights `(k[, C])`, polynomial `(d + 1[, C])`, metric `(d,)` and points `(m, d)`."""
+    wshape = (k,) if channels is None else (k, channels)
+    return (rng.normal(size=(k, d)), rng.normal(size=wshape), rng.normal(size=(d + 1,) + wshape[1:]),
+            rng.uniform(0.2, 1.5, size=d), rng.normal(size=(m, d)))
+
+
 @pytest.mark.parametrize("d", [3, 5])
 @pytest.mark.parametrize("channels", [None, 3])
 def test_evaluate_matches_brute_force(rng, d, channels):
     k, m = 37, 301
-    c = rng.normal(size=(k, d))
-    wshape = (k,) if channels is None else (k, channels)
-    w = rng.normal(size=wshape)
-    p = rng.normal(size=(d + 1,) + wshape[1:])
-    s = rng.uniform(0.2, 1.5, size=d)
-    x = rng.normal(size=(m, d))
+    c, w, p, s, x = _random_model(rng, k, d, m, channels)
     ref = _brute(c, w, p, x, s)
     for chunk in (None, 64, 1000):  # chunked (301 = 4*64 + 45), single block
         out = jaxsh.rbf_evaluate(c, w, p, x, s, chunk=chunk)
@@ -170,12 +172,7 @@ def test_rbf_auto_chunk():
 def test_evaluate_count_uses_the_leading_centres(rng, channels):
     """`count=k` equals the brute-force interpolant of the first k centres alone, for k in and between blocks."""
     k, d, m = 37, 5, 211  # 37 centres: 4 blocks of 10, the last padded
-    c = rng.normal(size=(k, d))
-    wshape = (k,) if channels is None else (k, channels)
-    w = rng.normal(size=wshape)
-    p = rng.normal(size=(d + 1,) + wshape[1:])
-    s = rng.uniform(0.2, 1.5, size=d)
-    x = rng.normal(size=(m, d))
+    c, w, p, s, x = _random_model(rng, k, d, m, channels)
     f = jax.jit(lambda n: jaxsh.rbf_evaluate(c, w, p, x, s, chunk=64, count=n))
     for n in (0, 1, 9, 10, 11, 25, 36, 37, 50):
         nk = min(n, k)
