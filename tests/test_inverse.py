@@ -781,8 +781,8 @@ def test_factorize_joint_rows_from_the_table_equal_those_of_eq25(obs_noisy):
 
 def test_factorize_refinement_reaches_the_minimum_of_the_joint_rss(obs_noisy, factorization):
     # The refinement profiles K_s per channel inside zooming grids in log sigma (`_refine_search`); the reference
-    # is scipy's Nelder-Mead over all four parameters of the same joint RSS (`_joint_rss`, itself tested against a
-    # dense least squares above), run to tight tolerances from a start away from the answer
+    # is scipy's BFGS over all four parameters of the same joint RSS (`_joint_rss`, itself tested against a dense
+    # least squares above; its gradient by autodiff), run to tight tolerances from a start away from the answer
     import scipy.optimize
 
     from solvers import _factorize as F
@@ -793,13 +793,13 @@ def test_factorize_refinement_reaches_the_minimum_of_the_joint_rss(obs_noisy, fa
     jt = F._joint_jit(obs_noisy, None, mu, 12, 4096, 1e-12, None)  # 9,600 samples: the search ran on all of them
     sp = F._source_parts(jt, mu, d)
     c = fac.brdf.ks.shape[0]
-    obj = jax.jit(lambda x: jnp.sum(F._joint_rss(jt, sp, x[:c], jnp.exp(x[c]), 12)[0]) / jnp.sum(jt.bl.g.bb))
+    obj = jax.jit(jax.value_and_grad(
+        lambda x: jnp.sum(F._joint_rss(jt, sp, x[:c], jnp.exp(x[c]), 12)[0]) / jnp.sum(jt.bl.g.bb)))
     ours = np.concatenate([np.asarray(fac.brdf.ks), [np.log(float(fac.brdf.sigma))]])
-    ref = scipy.optimize.minimize(lambda x: float(obj(jnp.asarray(x))), ours + [0.03, -0.02, 0.02, 0.1],
-                                  method="Nelder-Mead", options=dict(xatol=1e-10, fatol=1e-16, maxiter=20000,
-                                                                     maxfev=20000, adaptive=True))
-    assert float(obj(jnp.asarray(ours))) <= ref.fun * (1 + 1e-10)  # measured 4e-12 above scipy's value
-    np.testing.assert_allclose(ours, ref.x, atol=1e-6)  # measured 1.0e-7 at most (K_s and log sigma)
+    ref = scipy.optimize.minimize(lambda x: tuple(np.asarray(v) for v in obj(jnp.asarray(x))),
+                                  ours + [0.03, -0.02, 0.02, 0.1], jac=True, method="BFGS", options=dict(gtol=1e-13))
+    assert float(obj(jnp.asarray(ours))[0]) <= ref.fun * (1 + 1e-10)  # measured 2.5e-12 above it
+    np.testing.assert_allclose(ours, ref.x, atol=1e-6)  # measured 6.9e-8 at most (K_s and log sigma)
 
 
 def test_refinement_parts_equal_the_joint_rss(obs_noisy, factorization):
@@ -810,13 +810,18 @@ def test_refinement_parts_equal_the_joint_rss(obs_noisy, factorization):
     mu, d = fac.brdf.mu, fac.lighting.fast_directions[0]
     jt = F._joint_jit(obs_noisy, None, mu, 12, 4096, 1e-12, None)
     sp = F._source_parts(jt, mu, d)
+    ks = jnp.asarray([1e-6, 0.3, 0.7, 1.0])
+
+    @jax.jit
+    def both(sigma):  # (4 K_s, C): from the parts, and from `_joint_rss` with every channel at that K_s
+        parts = F._joint_golden_parts(jt, sp, sigma, 12)
+        got = jax.vmap(lambda k: jax.vmap(lambda p: F._reduced_rss(p, k))(parts))(ks)
+        want = jax.vmap(lambda k: F._joint_rss(jt, sp, jnp.full((3,), k), sigma, 12)[0])(ks)
+        return got, want
+
     for sigma in (0.05, 0.12, 0.4):
-        parts = F._joint_golden_parts(jt, sp, jnp.asarray(sigma), 12)
-        for k in (1e-6, 0.3, 0.7, 1.0):
-            ks = jnp.full((3,), k)
-            want = np.asarray(F._joint_rss(jt, sp, ks, jnp.asarray(sigma), 12)[0])
-            got = np.asarray(jax.vmap(lambda p: F._reduced_rss(p, k))(parts))
-            np.testing.assert_allclose(got, want, rtol=1e-11)
+        got, want = both(jnp.asarray(sigma))
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-11)
 
 
 def test_golden_ks_unit_converges_within_its_steps():
