@@ -500,7 +500,7 @@ def fit_sharing(
         k, rounds = int(st.count), int(st.round)
         lam, poly, idx_np = st.lam[:k], st.poly, st.idx[:k]
         hist_c, hist_rel = st.hist_count[: rounds + 1], st.hist_rel[: rounds + 1]
-        solved = bool(np.all(np.isfinite(lam)) and np.all(np.isfinite(poly)))
+        solved = _finite(lam, poly)
         rss = jnp.asarray(st.rss)
         reached = tol is None or not float(st.rel) > tol
         if single:
@@ -588,7 +588,8 @@ def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, s
 
 
 def _finite(*arrays) -> bool:
-    return all(bool(jnp.all(jnp.isfinite(a))) for a in arrays)
+    """Whether every entry is finite (on the host: eager `jnp` ops would each compile a program)."""
+    return all(bool(np.all(np.isfinite(np.asarray(a)))) for a in arrays)
 
 
 def _initial_subset(p, n_init, n_centers, key):
