@@ -146,10 +146,11 @@ def _lighting_channels(lighting):
 
 
 def _check_sigma_traced(sigma, mu):
-    """Inside jit: σ ≤ 0 or μ < 1 is an error (`equinox.error_if`); concrete values were checked by `TorranceSparrow`."""
+    """Inside jit: σ ≤ 0 or infinite or μ < 1 is an error (`equinox.error_if`); concrete values were checked by
+    `TorranceSparrow`. (`_combine` relies on it: it evaluates the terms with `check=False`.)"""
     if not isinstance(sigma, jax.core.Tracer) and not isinstance(mu, jax.core.Tracer):
         return sigma, mu
-    sigma = eqx.error_if(sigma, sigma <= 0, "`sigma` must be > 0")
+    sigma = eqx.error_if(sigma, (sigma <= 0) | (sigma == jnp.inf), "`sigma` must be > 0 and finite")
     if mu is not None:
         mu = eqx.error_if(mu, mu < 1, "`mu` must be >= 1")
     return sigma, mu
@@ -292,7 +293,8 @@ def _terms(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fa
 
 @jit
 def _combine(terms, mask, kd, ks, mu, sigma):
-    out = terms.components(kd, ks, mu, sigma)
+    # mu, sigma were checked: concrete by `TorranceSparrow`, traced by `_check_sigma_traced`
+    out = terms.components(kd, ks, mu, sigma, check=False)
     if mask is not None:
         out = Components(*(jnp.where(mask[:, None], x, 0.0) for x in out))
     return out

@@ -128,7 +128,11 @@ def microfacet_spectrum(sigma: Real[ArrayLike, "*batch"], lmax: int) -> Float[Ar
     """
     sigma = as_float_array(sigma, "sigma")
     lmax = check_lmax(lmax)
-    sigma = _check_sigma(sigma)
+    return _microfacet_filter(_check_sigma(sigma), lmax)
+
+
+def _microfacet_filter(sigma, lmax: int):
+    """`microfacet_spectrum` without its checks: `sigma` an array, `lmax` a checked int."""
     l = jnp.arange(lmax + 1, dtype=sigma.dtype).reshape((1,) * sigma.ndim + (-1,))
     return jnp.exp(-((sigma[..., None] * l) ** 2))
 

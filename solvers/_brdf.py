@@ -118,7 +118,7 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
 
 
 def _model(terms, kd, ks, mu, sigma, texel):
-    return _combine(terms.diffuse_unit(), terms.specular_unit(mu, sigma), kd, ks, texel)
+    return _combine(terms.diffuse_unit(), terms.specular_unit(mu, sigma, check=False), kd, ks, texel)
 
 
 def _combine(D, S, kd, ks, texel):
@@ -284,7 +284,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     def profiled_on(terms, b, w, sw, u):
         mu, sigma = _to_natural(u, fresnel)
         D = terms.diffuse_unit()
-        S = terms.specular_unit(mu, sigma)  # once per evaluation: the inner solve and the residual share it
+        S = terms.specular_unit(mu, sigma, check=False)  # once per evaluation: the inner solve and the residual share it
         kd, ks, bad = _inner(D, S, b, w, texel, n_texels, textured)
         r = sw * (_combine(D, S, kd, ks, texel) - b)
         return r, (kd, ks, bad, D, S)
@@ -386,7 +386,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             mu_ = th2[0] if fresnel else None
             sigma_ = th2[1]
             D = terms.diffuse_unit()
-            S = terms.specular_unit(mu_, sigma_)
+            S = terms.specular_unit(mu_, sigma_, check=False)
             kd_, ks_, _ = _inner(D, S, b, w, texel, n_texels, textured)
             return (sw * (_model(terms, kd_, ks_, mu_, sigma_, texel) - b)).reshape(-1)
 

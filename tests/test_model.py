@@ -166,3 +166,52 @@ def test_grad_through_the_types(rng):
     assert float(gb.sigma) == pytest.approx(float(fd_sigma), rel=1e-6)
     e = lambda s: f(brdf, jaxsh.Lighting(light.slow_sh, D2[None], E2[None] * s))
     assert float(jnp.sum(gl.fast_energy * E2[None])) == pytest.approx(float((e(1 + h) - e(1 - h)) / (2 * h)), rel=1e-6)
+
+
+def _primitives(jaxpr) -> set:
+    """Every primitive name in a closed jaxpr, sub-jaxprs (jit, cond, while, custom rules) included."""
+    out = set()
+    for eqn in jaxpr.eqns:
+        out.add(eqn.primitive.name)
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (tuple, list)) else (p,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    out |= _primitives(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    out |= _primitives(sub)
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_practical_terms_unchecked_evaluation(rng, dtype):
+    """`check=False` (what `solvers.fit_brdf` uses inside its loops): the same values, bit for bit, and no
+    run-time check in the program; with the default `check=True` a traced sigma <= 0 or mu <= 0 is an error."""
+    n, v = _pixels(rng).astype(dtype), _pixels(rng).astype(dtype)
+    light = jaxsh.Lighting(jaxsh.disk_light_sh(D1, 0.3, L1, 12).astype(dtype), D2[None].astype(dtype), E2[None].astype(dtype))
+    terms = jaxsh.practical_terms(n, v, light)
+    for mu, sigma in ((1.5, 0.15), (None, 0.05), (1.001, 0.9)):
+        np.testing.assert_array_equal(terms.specular_unit(mu, sigma, check=False), terms.specular_unit(mu, sigma))
+        np.testing.assert_array_equal(terms.fresnel(mu, check=False), terms.fresnel(mu))
+        for a, b in zip(terms.components(KD, KS, mu, sigma, check=False), terms.components(KD, KS, mu, sigma)):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == dtype
+    spec = jax.jit(lambda t, m, s: t.specular_unit(m, s))
+    for mu, sigma, name in ((1.5, -0.2, "sigma"), (1.5, 0.0, "sigma"), (1.5, np.inf, "sigma"), (-1.0, 0.2, "mu")):
+        with pytest.raises(Exception, match=name):
+            jax.block_until_ready(spec(terms, jnp.asarray(mu, dtype), jnp.asarray(sigma, dtype)))
+    # the checks are what `check=False` leaves out of the program: a conditional around a host callback
+    checked = _primitives(jax.make_jaxpr(lambda m, s: terms.specular_unit(m, s))(1.5, 0.2).jaxpr)
+    unchecked = _primitives(jax.make_jaxpr(lambda m, s: terms.specular_unit(m, s, check=False))(1.5, 0.2).jaxpr)
+    assert "cond" in checked and "cond" not in unchecked and "pure_callback" not in unchecked
+
+
+@pytest.mark.parametrize("sigma", [-0.2, 0.0, np.inf])
+def test_render_practical_traced_sigma_is_checked(rng, sigma):
+    """`render_practical` evaluates its terms unchecked (`_combine`): a traced sigma out of range must still be an
+    error, from its own check before the program."""
+    n, v = _pixels(rng, 8), _pixels(rng, 8)
+    light = jaxsh.Lighting(jaxsh.disk_light_sh(D1, 0.3, L1, 6), D2[None], E2[None])
+    f = jax.jit(lambda s: jaxsh.render_practical(n, v, jaxsh.TorranceSparrow(KD, KS, 1.5, s), light).total)
+    with pytest.raises(Exception, match="sigma"):
+        jax.block_until_ready(f(jnp.asarray(sigma)))
+    assert np.all(np.isfinite(f(jnp.asarray(0.2))))
