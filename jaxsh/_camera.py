@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float, Real
 from ._compile import jit
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array, check_positive_int, is_traced
+from ._checks import as_float_array, as_jax, check_positive_int, is_traced
 
 # --------------------------------------------------------------------------- helpers
 
@@ -48,7 +48,7 @@ def _widest(arrays):
 def _scalar(x, name: str):
     """A scalar float parameter; Python numbers stay weakly typed."""
     if isinstance(x, (int, float)) and not isinstance(x, bool):
-        return jnp.asarray(float(x))
+        return as_jax(float(x))
     a = as_float_array(x, name)
     if a.shape != ():
         raise ValueError(f"`{name}` must be a scalar (shape ()), got shape {tuple(a.shape)}")

@@ -48,6 +48,21 @@ def _reject_half(dtype, name: str) -> None:
         raise ValueError(f"`{name}`: {jnp.dtype(dtype).name} is not supported: use float32 or float64")
 
 
+def as_jax(x):
+    """`jnp.asarray(x)`, with NumPy arrays and scalars and Python floats sent by `jax.device_put`: the same array
+    (dtype canonicalized and weak type set the same way), without the small XLA program that `jnp.asarray`
+    compiles for each new NumPy shape and dtype (jax 0.10; 10-20 ms each at first use: a cold `jaxsh fit`
+    compiled about ten; docs/performance.md, "Sixth round").
+
+    A NumPy array is copied on the host first: on the CPU, `jax.device_put` can alias a NumPy buffer (measured:
+    a later write to the caller's array showed in the JAX array), and JAX arrays must not change."""
+    if isinstance(x, (np.ndarray, np.generic)):
+        return jax.device_put(np.array(x, copy=True))
+    if isinstance(x, float):
+        return jax.device_put(x)
+    return jnp.asarray(x)
+
+
 def as_float_array(x, name: str, complex_ok: bool = False):
     """`x` as a floating JAX array (the dtype rule of the module docstring).
 
@@ -55,7 +70,9 @@ def as_float_array(x, name: str, complex_ok: bool = False):
     `ValueError`; complex input is a `ValueError` unless `complex_ok`.
     """
     try:
-        x = jnp.asarray(x)
+        if isinstance(x, (np.ndarray, np.generic)) and x.dtype.kind in "biu":
+            x = np.asarray(x, jnp.result_type(float))  # on the host (`as_jax`; a new array, copied again there)
+        x = as_jax(x)
     except (TypeError, ValueError) as e:
         raise ValueError(f"`{name}` must be a numeric array, got {type(x).__name__}") from e
     if jnp.issubdtype(x.dtype, jnp.complexfloating):

@@ -343,7 +343,7 @@ def _eq24_terms(
         else:
             a = lambertian_spectrum(l2, dt)[sh_degrees(l2)]
             irr = irr + _sh2_dot(n, slow_sh[:k] * a[:, None])
-        r = _unit_vectors(r)
+        r = _unit_vectors(r, check=False)  # |R| = |v| = 1: n and v were checked above
         if table is None:
             bands = _sh_bands(r, slow_sh, lmax, chunk)
         else:

@@ -75,11 +75,13 @@ def _recurrence_tables(lmax: int):
     return a, b, d
 
 
-def _unit_vectors(dirs, name: str = "dirs"):
-    """Normalize; a zero, infinite or NaN direction is an error (checked in jit)."""
+def _unit_vectors(dirs, name: str = "dirs", check: bool = True):
+    """Normalize; a zero, infinite or NaN direction is an error (checked in jit; `check=False`: not checked, for
+    directions derived from checked ones, e.g. a mirror direction, whose length is that of its view)."""
     norm2 = jnp.sum(dirs * dirs, axis=-1, keepdims=True)
-    bad = jnp.any(~(jnp.isfinite(norm2) & (norm2 > 0)))
-    norm2 = eqx.error_if(norm2, bad, f"`{name}` contains a zero-length or non-finite direction")
+    if check:
+        bad = jnp.any(~(jnp.isfinite(norm2) & (norm2 > 0)))
+        norm2 = eqx.error_if(norm2, bad, f"`{name}` contains a zero-length or non-finite direction")
     return dirs * jax.lax.rsqrt(norm2)
 
 

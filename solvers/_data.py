@@ -224,7 +224,9 @@ def observations(
         if not cols[key]:
             return None
         a = np.concatenate(cols[key])
-        return jnp.asarray(a if dtype is None else a.astype(dtype))
+        # `device_put`, not `jnp.asarray`: the latter compiles a program per new NumPy shape (jax 0.10). `a` is a new
+        # array no one else holds (`device_put` may alias it on the CPU)
+        return jax.device_put(a if dtype is None else a.astype(dtype))
 
     return Observations(
         cat("n", dt), cat("v", dt), cat("b", dt), cat("w", dt), cat("t", dt), cat("fv", dt), cat("rv", dt),

@@ -589,7 +589,7 @@ def factorize(
                 # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
                 bb_sub = float(_weighted_energy(sub.weights, sub.values))
                 curv_rss = c2 * bb_sub * n_pos / (n_pos if sub is obs else sub.n_samples)
-        mu = jnp.asarray(1.0 + np.exp(best), dt)
+        mu = jax.device_put(np.asarray(1.0 + np.exp(best), dt))  # (`jnp.asarray` would compile a conversion)
         its1 = 9 + 7 + 7
     else:
         mu, its1 = None, 0
@@ -604,7 +604,7 @@ def factorize(
         # rounds' batch) from the table when it holds all pixels, else from one pass over all pixels, which also
         # makes their rows for the refinement; then the same batched golden search. The subset's blocks at mu,
         # for the refinement, come from the rounds' program too.
-        mu9 = jnp.full((9,), mu)
+        mu9 = jax.device_put(np.full((9,), np.asarray(mu)))
         if sub is obs:
             bl_obs = bl_sub = _mu_blocks(tab, mu9, lmax, rcond)
         else:
@@ -618,10 +618,12 @@ def factorize(
         ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond)
         blocks = (bl_obs, bl_obs if sub is obs else None)
     filtered = res1.coeffs
-    inf = jnp.full_like(ks, jnp.inf)
-    std_inf = TorranceSparrow.unchecked(inf, inf, None if mu is None else jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt))
-    zero = jnp.asarray(0)
-    stats = {"num_mu_candidates": jnp.asarray(its1), "num_sigma_candidates": zero, "num_steps_golden": golden_steps,
+    # constants made on the host and sent (`jnp.full_like`, `jnp.asarray` each compile a small program at first use)
+    inf = jax.device_put(np.full(ks.shape, np.inf, ks.dtype))
+    inf0 = jax.device_put(np.asarray(np.inf, dt))
+    std_inf = TorranceSparrow.unchecked(inf, inf, None if mu is None else inf0, inf0)
+    zero = jax.device_put(0)
+    stats = {"num_mu_candidates": jax.device_put(its1), "num_sigma_candidates": zero, "num_steps_golden": golden_steps,
              "num_steps_bisection": zero, "n_obs": res1.stats["n_obs"]}
 
     def result(brdf, lighting, source, std, status, iterations, rms, rel, stats):

@@ -150,8 +150,10 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
     def to_lighting(parts):
         slow, fd, fe = parts
-        return Lighting(None if slow is None else jnp.asarray(slow), None if fd is None else jnp.asarray(fd),
-                        None if fe is None else jnp.asarray(fe))
+        # NumPy parts by `device_put`: `jnp.asarray` compiles a program per new NumPy shape (jax 0.10)
+        # (a copy: `device_put` may alias a NumPy buffer on the CPU)
+        put = lambda a: a if a is None or isinstance(a, jax.Array) else jax.device_put(np.array(a, copy=True))  # noqa: E731
+        return Lighting(put(slow), put(fd), put(fe))
 
     known = None
     per_view = None  # one Lighting per view (`views[k].lighting`), else None

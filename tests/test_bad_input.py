@@ -463,3 +463,47 @@ def test_complex_and_non_numeric_rejected():
     _raises_named(lambda: jaxsh.latlong_directions(4, 8, dtype=np.int32), "dtype")
     _raises_named(lambda: jaxsh.lambertian_spectrum(2, dtype="complex64"), "dtype")
     _raises_named(lambda: jaxsh.project_latlong(np.array([["a"]]), 0), "image")
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_conversion_without_a_program(x64):
+    """`as_float_array` (every public entry's conversion) gives what `jnp.asarray` + the float rule give — dtype,
+    weak type, values, a copy — and compiles no XLA program for NumPy input of a new shape (`jnp.asarray` of a
+    NumPy array compiles one per shape and dtype in jax 0.10)."""
+    from jax import monitoring
+
+    from jaxsh._checks import as_float_array
+
+    compiles = []
+    listener = lambda event, duration, **kw: compiles.append(event) if event == "/jax/core/compile/backend_compile_duration" else None  # noqa: E731
+    monitoring.register_event_duration_secs_listener(listener)
+    try:
+        with jax.enable_x64(x64):
+            jnp.zeros(1).block_until_ready()
+            cases = [np.arange(6.0).reshape(2, 3) + 0.5, np.ones(3, np.float32), np.arange(4), np.array([True, False]),
+                     np.float64(1.5), np.int32(3), 1.5, np.zeros((0, 3))]
+            for k, x in enumerate(cases):
+                compiles.clear()
+                shape = (1000 + k, 3)  # NumPy arrays of shapes no program has seen yet
+                fresh = np.resize(np.asarray(x), shape).astype(np.asarray(x).dtype) if np.size(x) else np.zeros(shape)
+                got = as_float_array(fresh, "x")
+                assert compiles == [], f"case {k}: {compiles}"
+                want = jnp.asarray(fresh)
+                want = want if jnp.issubdtype(want.dtype, jnp.floating) else want.astype(jnp.result_type(float))
+                assert got.dtype == want.dtype and got.weak_type == want.weak_type and got.shape == want.shape
+                np.testing.assert_array_equal(got, want)
+                got0 = as_float_array(x, "x")
+                want0 = jnp.asarray(x)
+                want0 = want0 if jnp.issubdtype(want0.dtype, jnp.floating) else want0.astype(jnp.result_type(float))
+                assert got0.dtype == want0.dtype and got0.weak_type == want0.weak_type
+                np.testing.assert_array_equal(got0, want0)
+            # the caller's array is copied, never aliased (`jax.device_put` alone aliased a NumPy buffer in about
+            # two calls out of three here: a later write to it showed in the JAX array)
+            for _ in range(20):
+                for n in (3, 17, 64, 1000):
+                    a = np.ones(n)
+                    b = as_float_array(a, "x")
+                    a[0] = 7.0
+                    assert float(np.asarray(b)[0]) == 1.0
+    finally:
+        monitoring.unregister_event_duration_listener(listener)
