@@ -237,12 +237,17 @@ def lighting_from_gram(g: Gram, kd, ks, lmax, ridge, rcond) -> LightingResult:
 
 def _lighting_from_system(ata, atb, bb, count, kd, lmax, ridge, rcond) -> LightingResult:
     x, se, det, sv, rss, rank = eig_solve(ata, atb, bb, count, rcond, ridge)
+    # per-band reductions over the (n, L+1) band indicator (a NumPy constant): one kernel each, where a slice and
+    # a reduction per band were 2 (L+1) kernels to compile (a masked sum, not a product with the indicator:
+    # an infinite SNR times 0 would be NaN in the other bands)
+    band = jnp.asarray(jaxsh.sh_degrees(lmax)[:, None] == np.arange(lmax + 1)[None, :])  # (n, L+1)
+    width = jnp.asarray(2.0 * np.arange(lmax + 1) + 1.0, x.dtype)  # coefficients per band
     # supported l*: largest l with all coefficients of degree <= l determined.
-    band_ok = jnp.stack([jnp.all(det[:, l * l : (l + 1) ** 2], -1) for l in range(lmax + 1)], -1)  # (C, L+1)
+    band_ok = jnp.all(det[:, :, None] | ~band[None], axis=1)  # (C, L+1)
     prefix = jnp.cumprod(band_ok.astype(jnp.int32), -1)
     supported = jnp.sum(prefix, -1) - 1
     snr2 = jnp.where(det, (x / jnp.where(det, se, 1.0)) ** 2, 0.0)
-    band_snr = jnp.stack([jnp.sqrt(jnp.mean(snr2[:, l * l : (l + 1) ** 2], -1)) for l in range(lmax + 1)], 0)
+    band_snr = jnp.sqrt(jnp.sum(jnp.where(band[None], snr2[:, :, None], 0.0), axis=1) / width[None, :]).T  # (L+1, C)
     nobs = count * kd.shape[0]
     data_ss = jnp.sum(bb)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
