@@ -52,7 +52,7 @@ def as_jax(x):
     """`jnp.asarray(x)`, with NumPy arrays and scalars and Python floats sent by `jax.device_put`: the same array
     (dtype canonicalized and weak type set the same way), without the small XLA program that `jnp.asarray`
     compiles for each new NumPy shape and dtype (jax 0.10; 10-20 ms each at first use: a cold `jaxsh fit`
-    compiled about ten; docs/performance.md, "Sixth round").
+    compiled fourteen such programs; docs/performance.md, "Sixth round").
 
     A NumPy array is copied on the host first: on the CPU, `jax.device_put` can alias a NumPy buffer (measured:
     a later write to the caller's array showed in the JAX array), and JAX arrays must not change."""
