@@ -71,8 +71,9 @@ def as_float_array(x, name: str, complex_ok: bool = False):
     """
     try:
         if isinstance(x, (np.ndarray, np.generic)) and x.dtype.kind in "biu":
-            x = np.asarray(x, jnp.result_type(float))  # on the host (`as_jax`; a new array, copied again there)
-        x = as_jax(x)
+            x = jax.device_put(np.asarray(x, jnp.result_type(float)))  # converted on the host: a new array (`as_jax`)
+        else:
+            x = as_jax(x)
     except (TypeError, ValueError) as e:
         raise ValueError(f"`{name}` must be a numeric array, got {type(x).__name__}") from e
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
