@@ -139,11 +139,14 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
 class MirrorTable(eqx.Module):
     """The $\\mu$-independent parts of eq. 25's rows for one pixel set (`mirror_table`), for `grams_at_mus`.
 
-    `y2` `(n_2, N)`: $Y_{LM}(R)$ of the mirror directions for $L \\le 2l^*$ (its first $n = (l^*+1)^2$ rows
-    are the specular rows' harmonics); `yq` `(Q, n_2)`: the same harmonics at the `Q` nodes of the
-    Gauss-Legendre grid of `grams_at_mus` and `wq` `(Q,)` its weights (made once per table, not per call);
-    `d` `(N, 9)`: the diffuse rows; `s_scale` `(N,)`: the reflected-ray visibility, 0 where the pixel is
-    seen from behind; `cos_o` `(N,)`: $\\cos\\theta_o$ (1 where seen from behind); `b` `(N, C)`, `w` `(N,)`.
+    The table has `N + Q` columns: the `N` pixels, then the `Q` nodes of the Gauss-Legendre grid of
+    `grams_at_mus` as extra columns of weight 0 (their harmonics come from the same evaluation as the
+    pixels'; they add nothing to any sum). `y2` `(n_2, N + Q)`: $Y_{LM}$ for $L \\le 2l^*$ of the mirror
+    directions, then of the nodes (its first $n = (l^*+1)^2$ rows are the specular rows' harmonics); `yq`
+    `(Q, n_2)`: the nodes' harmonics (a copy of `y2`'s last columns, transposed) and `wq` `(Q,)` the grid's
+    weights (made once per table, not per call); `d` `(N + Q, 9)`: the diffuse rows; `s_scale` `(N + Q,)`:
+    the reflected-ray visibility, 0 where the pixel is seen from behind; `cos_o` `(N + Q,)`:
+    $\\cos\\theta_o$ (1 where seen from behind); `b` `(N + Q, C)`, `w` `(N + Q,)` (0 on the nodes).
     """
 
     y2: jax.Array
@@ -157,16 +160,21 @@ class MirrorTable(eqx.Module):
 
 
 def mirror_table(n, v, b, w, transfer, rvis, lmax: int) -> MirrorTable:
-    """`MirrorTable` of eq. 25's rows (`eq25_rows` without the Fresnel factor); memory $O(N (2l^*+1)^2)$."""
+    """`MirrorTable` of eq. 25's rows (`eq25_rows` without the Fresnel factor); memory $O(N (2l^*+1)^2)$.
+
+    The harmonics of the mirror directions and of the quadrature nodes are one `jaxsh.real_sh` call (one
+    copy of its loop in the compiled program: each copy cost ~0.2 s of XLA compilation)."""
     d, _ = eq25_rows(n, v, transfer, None, None, None, min(lmax, 2), coeffs_first=True)
-    d = d.T
     cos_o = jnp.sum(n * v, -1)
     vis = cos_o > 0
     scale = jnp.where(vis, 1.0 if rvis is None else rvis, 0.0).astype(n.dtype)
     grid, wq = jaxsh.gauss_legendre_grid(2 * lmax + 1, 4 * lmax + 1, dtype=n.dtype)
-    y2 = jaxsh.real_sh(jaxsh.reflect(v, n), 2 * lmax, coeffs_first=True)
-    yq = jaxsh.real_sh(grid.reshape(-1, 3), 2 * lmax)
-    return MirrorTable(y2, yq, wq.reshape(-1), d, scale, jnp.where(vis, cos_o, 1.0), b, w)
+    nodes = grid.reshape(-1, 3)
+    q = nodes.shape[0]
+    y2 = jaxsh.real_sh(jnp.concatenate([jaxsh.reflect(v, n), nodes]), 2 * lmax, coeffs_first=True)
+    pad = lambda a, value=0.0: jnp.concatenate([a, jnp.full((q,) + a.shape[1:], value, a.dtype)])  # noqa: E731
+    return MirrorTable(y2, y2[:, -q:].T, wq.reshape(-1), pad(d.T), pad(scale), pad(jnp.where(vis, cos_o, 1.0), 1.0),
+                       pad(b), pad(w))
 
 
 def grams_at_mus(tab: MirrorTable, mus, lmax: int) -> Gram:

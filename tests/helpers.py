@@ -1,5 +1,6 @@
 """Independent references for the tests (scipy, explicit formulas)."""
 
+import jax
 import numpy as np
 import scipy.special as sp
 
@@ -77,3 +78,17 @@ def hemisphere_normals(size=8):
     normal = np.stack([x, y, z], -1)
     normal[~mask] = [0.0, 0.0, 1.0]
     return normal / np.linalg.norm(normal, axis=-1, keepdims=True), mask
+
+
+def primitives(jaxpr) -> set:
+    """Every primitive name in a closed jaxpr, sub-jaxprs (jit, cond, while, custom rules) included."""
+    out = set()
+    for eqn in jaxpr.eqns:
+        out.add(eqn.primitive.name)
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (tuple, list)) else (p,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    out |= primitives(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    out |= primitives(sub)
+    return out

@@ -222,6 +222,34 @@ def test_find_source_recovers_sigma_of_a_filtered_delta(sigma):
     assert _rel(src2.sigma, sigma) < 0.05
 
 
+def test_eq26_model_functionals_against_legendre_quadrature(rng):
+    """eq. 26's model ratio needs three linear functionals of the band-limited filtered delta
+    $f_\\sigma(\\theta) = \\sum_l (2l+1)/(4\\pi) e^{-(\\sigma l)^2} P_l(\\cos\\theta)$; the bisection evaluates
+    them from a precomputed (K, l* + 1) table (`_delta_moments`). Reference: f evaluated with
+    `scipy.special.eval_legendre` on the grid and summed against the same weights; and the unit source's
+    integral over the whole sphere is 1 (l = 0 only) whatever sigma."""
+    from scipy.special import eval_legendre
+
+    from solvers import _factorize as F
+
+    lmax = 12
+    th = np.linspace(0.0, 0.9, 3001)
+    m = rng.uniform(0, 1, (3, th.size))
+    l = np.arange(lmax + 1)
+    fm = F._delta_moments(lmax)(jnp.asarray(m), jnp.asarray(th))
+    for sigma in (0.05, 0.12, 0.6):
+        f = eval_legendre(l[None, :], np.cos(th)[:, None]) @ ((2 * l + 1) / (4 * np.pi) * np.exp(-((sigma * l) ** 2)))
+        np.testing.assert_allclose(np.asarray(fm(jnp.asarray(sigma))), m @ f, rtol=1e-12)
+    # the whole sphere by Gauss-Legendre in cos(theta): only l = 0 survives, 4 pi * 1/(4 pi) = 1
+    x, w = np.polynomial.legendre.leggauss(2 * lmax)
+    full = F._delta_moments(lmax)(jnp.asarray(2 * np.pi * w[None, :]), jnp.asarray(np.arccos(x)))
+    for sigma in (0.05, 0.3):
+        np.testing.assert_allclose(np.asarray(full(jnp.asarray(sigma))), [1.0], rtol=1e-12)
+    # the unbanded lobe (dual path): m @ exp(-theta^2 / (4 sigma^2)) / (4 pi sigma^2)
+    lobe = F._lobe_moments(jnp.asarray(m), jnp.asarray(th))(jnp.asarray(0.1))
+    np.testing.assert_allclose(np.asarray(lobe), m @ (np.exp(-(th**2) / 0.04) / (4 * np.pi * 0.01)), rtol=1e-12)
+
+
 @pytest.fixture(scope="module")
 def factorization(obs_noisy):
     return solvers.factorize(obs_noisy, 12)

@@ -8,7 +8,7 @@ import pytest
 import jaxsh
 import solvers
 
-from .helpers import random_dirs
+from .helpers import primitives, random_dirs
 
 D1 = np.array([0.4, 0.5, 0.77]) / np.linalg.norm([0.4, 0.5, 0.77])
 D2 = np.array([-0.5, 0.2, 0.84]) / np.linalg.norm([-0.5, 0.2, 0.84])
@@ -168,20 +168,6 @@ def test_grad_through_the_types(rng):
     assert float(jnp.sum(gl.fast_energy * E2[None])) == pytest.approx(float((e(1 + h) - e(1 - h)) / (2 * h)), rel=1e-6)
 
 
-def _primitives(jaxpr) -> set:
-    """Every primitive name in a closed jaxpr, sub-jaxprs (jit, cond, while, custom rules) included."""
-    out = set()
-    for eqn in jaxpr.eqns:
-        out.add(eqn.primitive.name)
-        for p in eqn.params.values():
-            for sub in p if isinstance(p, (tuple, list)) else (p,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    out |= _primitives(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    out |= _primitives(sub)
-    return out
-
-
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_practical_terms_unchecked_evaluation(rng, dtype):
     """`check=False` (what `solvers.fit_brdf` uses inside its loops): the same values, bit for bit, and no
@@ -200,8 +186,8 @@ def test_practical_terms_unchecked_evaluation(rng, dtype):
         with pytest.raises(Exception, match=name):
             jax.block_until_ready(spec(terms, jnp.asarray(mu, dtype), jnp.asarray(sigma, dtype)))
     # the checks are what `check=False` leaves out of the program: a conditional around a host callback
-    checked = _primitives(jax.make_jaxpr(lambda m, s: terms.specular_unit(m, s))(1.5, 0.2).jaxpr)
-    unchecked = _primitives(jax.make_jaxpr(lambda m, s: terms.specular_unit(m, s, check=False))(1.5, 0.2).jaxpr)
+    checked = primitives(jax.make_jaxpr(lambda m, s: terms.specular_unit(m, s))(1.5, 0.2).jaxpr)
+    unchecked = primitives(jax.make_jaxpr(lambda m, s: terms.specular_unit(m, s, check=False))(1.5, 0.2).jaxpr)
     assert "cond" in checked and "cond" not in unchecked and "pure_callback" not in unchecked
 
 

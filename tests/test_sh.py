@@ -9,7 +9,7 @@ from hypothesis import given, strategies as st
 
 import jaxsh
 
-from .helpers import random_dirs, scipy_complex_sh, scipy_real_sh
+from .helpers import primitives, random_dirs, scipy_complex_sh, scipy_real_sh
 
 
 # ---------------------------------------------------------------- indexing
@@ -111,7 +111,7 @@ def test_complex_sh_matches_scipy(rng):
     np.testing.assert_allclose(got, scipy_complex_sh(d, 12), rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("lmax", [4, 12, 13, 16, 30])
+@pytest.mark.parametrize("lmax", [1, 2, 4, 12, 13, 16, 30])
 def test_float32_accuracy(rng, lmax):
     """float32 stays within 1e-5 of the exact values at the float32 inputs up to l = 30, poles included."""
     t = np.linspace(0, 0.08, 300)
@@ -265,6 +265,19 @@ def test_real_sh_chunks_and_layouts(rng, lmax, n):
     np.testing.assert_array_equal(t, got.T)
 
 
+@pytest.mark.parametrize("lmax", [0, 1, 2, 3])
+@pytest.mark.parametrize("coeffs_first", [False, True])
+def test_real_sh_low_degrees_written_out(lmax, coeffs_first):
+    """At lmax <= 2 (every diffuse term's 9 harmonics) `real_sh` is the written-out recurrence, a program
+    without loops (less to compile in every program that holds it); from lmax 3 the rolled kernel. The
+    values are checked against scipy by the tests above, for both paths."""
+    from jaxsh import _sh
+
+    d = jnp.ones((1000, 3))
+    prims = primitives(jax.make_jaxpr(lambda v: _sh._real_sh_flat(v, lmax, coeffs_first))(d).jaxpr)
+    assert bool(prims & {"while", "scan"}) == (lmax > _sh._UNROLLED_LMAX)
+
+
 def test_real_sh_coeffs_first_batch_and_float32(rng):
     d = random_dirs(rng, (4, 5)).astype(np.float32)
     a = jaxsh.real_sh(d, 6)
@@ -278,7 +291,7 @@ def test_real_sh_coeffs_first_batch_and_float32(rng):
 # ---------------------------------------------------------------- gradients
 
 
-@pytest.mark.parametrize("lmax", [3, 24])
+@pytest.mark.parametrize("lmax", [2, 3, 24])
 def test_gradient_vs_finite_differences(rng, lmax):
     d = random_dirs(rng, (4,))
     w = rng.normal(size=jaxsh.num_coeffs(lmax))
@@ -300,9 +313,10 @@ def test_gradient_vs_finite_differences(rng, lmax):
     np.testing.assert_allclose(jfwd, jrev, atol=1e-11)
 
 
-def test_gradient_finite_at_poles():
+@pytest.mark.parametrize("lmax", [2, 10])
+def test_gradient_finite_at_poles(lmax):
     poles = jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-300, 0.0, 1.0]])
-    g = jax.jacrev(lambda v: jaxsh.real_sh(v, 10))(poles)
+    g = jax.jacrev(lambda v: jaxsh.real_sh(v, lmax))(poles)
     assert np.all(np.isfinite(np.asarray(g)))
 
 
