@@ -376,7 +376,9 @@ def real_sh(
     errors grow like l rather than l² there (`_z_features`, `_rows_chunk`;
     a plain float32 recurrence reaches 1.3e-5 at l = 16 and 5e-5 at l = 30).
     The recurrence over l is one rolled loop (`_rows_chunk`), so the compiled
-    program is small at any `lmax` (0.1-0.3 s of XLA compilation on 2 cores).
+    program is small at any `lmax` (0.1-0.3 s of XLA compilation on 2 cores);
+    at `lmax` ≤ 2 (the 9 harmonics of every diffuse term) it is written out
+    instead, a loop-free program that compiles in about half that time.
 
     **Arguments:**
 
