@@ -149,11 +149,9 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
                                         f"`views[{k}].camera` is {c['width']}x{c['height']}: {view['mask']}")
     mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
     def to_lighting(parts):
-        slow, fd, fe = parts
-        # NumPy parts by `device_put`: `jnp.asarray` compiles a program per new NumPy shape (jax 0.10)
-        # (a copy: `device_put` may alias a NumPy buffer on the CPU)
-        put = lambda a: a if a is None or isinstance(a, jax.Array) else jax.device_put(np.array(a, copy=True))  # noqa: E731
-        return Lighting(put(slow), put(fd), put(fe))
+        # NumPy parts as they are: `Lighting`'s fields convert them (`as_float_array`: a host copy sent by
+        # `device_put`, no XLA program per shape)
+        return Lighting(*parts)
 
     known = None
     per_view = None  # one Lighting per view (`views[k].lighting`), else None

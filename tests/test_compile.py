@@ -101,3 +101,23 @@ def test_jit_decorator_forms():
     assert f.__name__ == "f"
     low = f.lower(jnp.asarray(3.0), 3)
     assert float(low.compile()(jnp.asarray(2.0), 3)) == 8.0
+
+
+def test_importing_the_packages_leaves_jax_config_alone():
+    """`import jaxsh, solvers, solvers.cli, jaxsh.io` in a fresh process changes no `jax.config` value
+    (x64, caches, device count, ...): global flags are the user's; only the command line's `main()` sets its
+    own (tests/test_cli_cache.py)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import jax, json\n"
+        "names = sorted(k for k in jax.config.values if isinstance(jax.config.values[k], (bool, int, float, str, type(None))))\n"
+        "before = {k: jax.config.values[k] for k in names}\n"
+        "import jaxsh, jaxsh.io, solvers, solvers.cli\n"
+        "after = {k: jax.config.values[k] for k in names}\n"
+        "print(json.dumps({k: [before[k], after[k]] for k in names if before[k] != after[k]}))\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip().splitlines()[-1] == "{}", p.stdout
