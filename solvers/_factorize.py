@@ -138,6 +138,13 @@ class FactorizationResult(Solution):
       first stage (the angular-space lighting image of fig. 8 at the stage-1
       BRDF, the input of eq. 26); otherwise None. `filtered_sh` is then that
       image projected to `lmax`.
+    - `fitted`: `(N, C)` the model at the estimate for every sample of `obs`,
+      the values the final residual compares with `obs.values`
+      (`obs.to_images(result.fitted)`: re-renders of the views). After the
+      refinement: eq. 24 with `brdf` and `lighting` (the filtered slow SH and
+      the source); without it: eq. 25 at the first stage's $K_s$, $\\mu$ and
+      `filtered_sh` (with `lighting_method="dual"`, the dual image's
+      projection, so its residual is not the dual fit's `rms`).
     """
 
     brdf: TorranceSparrow
@@ -151,6 +158,7 @@ class FactorizationResult(Solution):
     rel_rms: Float[Array, ""]
     stats: dict
     dual: DualLightingResult | None = None
+    fitted: Float[Array, "N C"] | None = None
 
     @property
     def estimate(self) -> TorranceSparrow:
@@ -662,10 +670,12 @@ def factorize(
     stats = {"num_mu_candidates": jax.device_put(its1), "num_sigma_candidates": zero, "num_steps_golden": golden_steps,
              "num_steps_bisection": zero, "n_obs": res1.stats["n_obs"]}
 
-    def result(brdf, lighting, source, std, status, iterations, rms, rel, stats):
+    def result(brdf, lighting, source, std, status, iterations, rms, rel, stats, fitted=None):
+        if fitted is None:  # eq. 25 of the first stage
+            fitted = _stage1_fitted(obs, mu, ks, filtered, lmax)
         res = FactorizationResult(brdf=brdf, lighting=lighting, filtered_sh=filtered, source=source, std_errors=std,
                                   status=status, iterations=jnp.asarray(iterations), rms=rms, rel_rms=rel, stats=stats,
-                                  dual=dual)
+                                  dual=dual, fitted=fitted)
         return finish(res, throw)
 
     if not find_sigma:
@@ -681,7 +691,7 @@ def factorize(
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
                   rows_obs)
-    ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss = out
+    ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted = out
     kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2)
     brdf = TorranceSparrow.unchecked(kd, ks, mu, sigma)
     se_mu = None
@@ -694,7 +704,7 @@ def factorize(
             se_mu = jnp.asarray(np.sqrt(s2 / (0.5 * curv_rss)) * (float(mu) - 1.0), dt)
     std = TorranceSparrow.unchecked(se_ks, se_ks, se_mu, se_sigma)
     stats["num_sigma_candidates"] = its2
-    return result(brdf, lighting, src, std, status, iterations, rms, rel, stats)
+    return result(brdf, lighting, src, std, status, iterations, rms, rel, stats, fitted)
 
 
 @jaxsh.jit
@@ -881,6 +891,11 @@ class _SourceParts(eqx.Module):
     h_fd: Array  # (m,)
 
 
+def _source_lobe(sp: _SourceParts, sigma):
+    """The source's specular row at σ, `(N,)`: `amp` times the lobe $e^{-\\theta_h^2/\\sigma^2}/(\\pi\\sigma^2)$ (eq. 23)."""
+    return sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
+
+
 def _source_parts(jt: _Joint, mu, d) -> _SourceParts:
     n, v = jt.normals, jt.views
     cos_o = jnp.sum(n * v, -1)
@@ -915,7 +930,7 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
     $(C, m, m)$ products of `_schur_rss` (tested equal to it, `tests/test_inverse.py`)."""
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     kd = 1.0 - ks
-    fs = sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
+    fs = _source_lobe(sp, sigma)
     wfs = jt.w * fs
     rows_fs = jt.rows @ wfs
     # cross terms with the (filtered) slow columns
@@ -966,7 +981,7 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
         jt = _joint_padded(obs, bl_obs, rows_obs, column)
     else:
         jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
-    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its)
+    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples)
 
 
 def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
@@ -1034,7 +1049,7 @@ def _joint_golden_parts(jt: _Joint, sp: _SourceParts, sigma, lmax) -> _GoldenPar
     $r_1 = K_d r_d + K_s r_s$; only the source's specular row depends on σ (one product with the rows)."""
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     f1 = filt[:9]
-    fs = sp.amp * (jnp.exp(-sp.th2 / sigma**2) / (jnp.pi * sigma**2))
+    fs = _source_lobe(sp, sigma)
     wfs = jt.w * fs
     rows_fs = jt.rows @ wfs
     g = jt.bl.g
@@ -1170,7 +1185,9 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
 
 
 @jaxsh.jit
-def _refine_final(jt, ks, sigma, mu, d, lmax, status, its):
+def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int):
+    """The refinement's estimate at `(ks, sigma)`: lighting, standard errors, rms, and the model at the first `n`
+    pixels of `jt` (`jt` may carry weight-0 padding after them)."""
     c = jt.b.shape[1]
     sp = _source_parts(jt, mu, d)
     hess, (rss, x1, x2) = _profiled_hessian(jt, sp, ks, sigma, lmax)
@@ -1189,4 +1206,22 @@ def _refine_final(jt, ks, sigma, mu, d, lmax, status, its):
     hinv = inverse_spd_small(0.5 * h2)
     var = jnp.diag(hinv) * s2
     se = jnp.where((var > 0) & jnp.isfinite(var), jnp.sqrt(jnp.abs(var)), jnp.inf)
-    return ks, sigma, lighting, se[:c], se[c], status, its, rms, rel, data_ss
+    # the model at the estimate (`_joint_rss`'s): K_d (diffuse rows . L_{l<=2} + f_d E) + K_s (specular rows . filtered
+    # L + f_s E), as one product of the rows with the combined coefficients (C, 9 + n) (rows `(9 + n, N)` as stored)
+    kd = 1.0 - ks
+    # eq. 20's filter written out: `jaxsh.microfacet_spectrum`'s checks are not needed for a σ of the search's range,
+    # and their two host callbacks cost ~0.1 s of tracing and lowering here (measured)
+    filt = jnp.exp(-((sigma * jnp.asarray(jaxsh.sh_degrees(lmax), sigma.dtype)) ** 2))
+    coef = jnp.concatenate([kd[:, None] * x1[:, :9], ks[:, None] * slow.T * filt[None, :]], 1)
+    fs = _source_lobe(sp, sigma)
+    src = (kd[:, None] * sp.fd[None, :] + ks[:, None] * fs[None, :]) * x1[:, 9][:, None]  # (C, N)
+    fitted = ((coef @ jt.rows + src)[:, :n]).T
+    return ks, sigma, lighting, se[:c], se[c], status, its, rms, rel, data_ss, fitted
+
+
+@jaxsh.jit
+def _stage1_fitted(o: Observations, mu, ks, coeffs, lmax: int):
+    """Eq. 25 at `(ks, mu)` with the lighting `coeffs` `(n, C)` (the first stage's model: one set of coefficients
+    for the diffuse l <= 2 and the specular rows), `(N, C)`."""
+    d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax, coeffs_first=True)
+    return ((1.0 - ks)[:, None] * (coeffs[:9].T @ d) + ks[:, None] * (coeffs.T @ s)).T

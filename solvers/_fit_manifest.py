@@ -35,7 +35,7 @@ import jaxsh
 from jaxsh import io as jio
 
 from ._brdf import fit_brdf
-from ._data import Lighting, TorranceSparrow, observations, practical_terms_for, predict, status_name
+from ._data import Lighting, TorranceSparrow, observations, predict, status_name
 from ._factorize import factorize
 from ._lighting import inverse_lighting
 from ._scale import shard_observations
@@ -204,10 +204,11 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         texel = np.arange(hh * ww, dtype=np.int32).reshape(hh, ww)
         vis["texel"] = [texel] * n
         vis["n_texels"] = hh * ww
-    if known is not None:
+    if known is not None or m["brdf"] is None:
         # Every object pixel is a sample, the invalid ones (masked, clipped) with weight 0: the fit is the same,
         # views sharing a camera get the same pixel count (one compiled program for all of them), and the
-        # re-renders below reuse the fit's eq. 24 terms instead of compiling a renderer.
+        # re-renders below are the fit's own model at every object pixel (`fitted`) instead of a renderer's
+        # compiled program.
         sat = solve.get("saturation")
         valid = [mk & (np.all(im < sat, -1) if sat is not None else True) for mk, im in zip(masks, imgs)]
         imgs = [np.where(v[..., None], im, 0.0) for v, im in zip(valid, imgs)]
@@ -224,7 +225,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     std = None
     if known is not None:
         say("known lighting: fitting " + ("Kd, Ks" if textured is None else f"per-texel {textured}") +
-            ", mu, sigma (simplex + Levenberg-Marquardt, R&H sec. 6.1)")
+            ", mu, sigma (grid + simplex, R&H sec. 6.1; Levenberg-Marquardt on all samples after a search on a subset)")
         res = fit_brdf(sobs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
                        textured=textured)
         brdf, lighting, std = res.brdf, known, res.std_errors
@@ -255,10 +256,9 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
 
     t = time.perf_counter()
     _write_lighting(out, display_sh, lmax)
-    if known is not None:  # eq. 24 at the fitted BRDF from the fit's own terms (same shapes: no new program)
-        terms = practical_terms_for(obs, known if per_view is None else per_view)
-        rows = (lambda a: a) if textured is None else (lambda a: a[obs.texel] if np.ndim(a) == 2 else a)  # noqa: E731
-        renders = obs.to_images(np.asarray(_eval_terms(terms, rows(brdf.kd), rows(brdf.ks), brdf.mu, brdf.sigma)))
+    if known is not None or m["brdf"] is None:  # the model at the estimate, as the fit evaluated it (eq. 24;
+        # `sobs` may carry padding at the end)
+        renders = obs.to_images(np.asarray(res.fitted)[: obs.n_samples])
     else:
         renders = [np.asarray(predict(brdf, lighting if per_view is None else per_view[k], g.normal, g.view,
                                       mask=g.mask, **extras[k])) for k, g in enumerate(gbs)]
@@ -310,12 +310,6 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     jio.write_json(out("result.json"), result)
     say(f"wrote {out_dir}/result.json, lighting.exr/.png and {len(gbs)} re-renders")
     return result
-
-
-@jaxsh.jit
-def _eval_terms(terms, kd, ks, mu, sigma):
-    """Eq. 24 from the fit's own terms as one program (not op by op)."""
-    return terms(kd, ks, mu, sigma)
 
 
 def _lighting_json(light_sh, lmax: int) -> dict:

@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -189,7 +190,7 @@ def fit_many(
     captures: Sequence[tuple[Observations, Lighting | Sequence[Lighting]]],
     *,
     fresnel: bool = True,
-    refine: bool = True,
+    refine: bool | None = None,
     max_steps: int = 400,
     rtol: float | None = None,
     atol: float | None = None,
@@ -204,7 +205,10 @@ def fit_many(
     - `captures`: a sequence of `(obs, lighting)` pairs, as `fit_brdf` takes
       them (homogeneous BRDF; `lighting` one `Lighting` or one per view).
       The captures may differ in size.
-    - `fresnel`, `refine`, `max_steps`, `rtol`, `atol`: as `fit_brdf`.
+    - `fresnel`, `refine`, `max_steps`, `rtol`, `atol`: as `fit_brdf`. The
+      grid and the simplex always use every sample here, so `refine=None`
+      (default) runs no Levenberg–Marquardt refinement, as `fit_brdf` with
+      every sample in its search.
     - `mesh`: a `jax.sharding.Mesh` (e.g. `pixel_mesh(axis="batch")`): the
       captures of a bucket are sharded over its axis `axis` (default: its
       first axis); None: one device.
@@ -234,6 +238,9 @@ def fit_many(
         raise ValueError("`captures` is empty: give at least one (obs, lighting) pair")
     max_steps = check_int(max_steps, "max_steps")
     min_bucket = check_int(min_bucket, "min_bucket")
+    if refine is not None and not isinstance(refine, (bool, np.bool_)):
+        raise ValueError(f"`refine` must be None, True or False, got {refine!r}")
+    refine = bool(refine) if refine is not None else False  # None: as fit_brdf whose search saw every sample
     rtol = None if rtol is None else check_float(rtol, "rtol")
     atol = None if atol is None else check_float(atol, "atol")
     if mesh is not None:
@@ -258,7 +265,7 @@ def fit_many(
         leaves, tdef = jax.tree_util.tree_flatten(terms)
         key = (padded.n_samples, obs.values.shape[1], str(obs.values.dtype), tdef,
                tuple((x.shape, str(x.dtype)) for x in leaves))
-        groups.setdefault(key, []).append((i, terms, padded.values, padded.weights))
+        groups.setdefault(key, []).append((i, terms, padded.values, padded.weights, obs.n_samples))
     out: list = [None] * len(captures)
     for key, members in groups.items():
         dt = members[0][2].dtype
@@ -280,6 +287,7 @@ def fit_many(
         host = jax.device_get(res)  # one transfer, then one result per capture
         if blocks:
             host = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), host)
-        for k, (i, *_rest) in enumerate(members):
-            out[i] = jax.tree_util.tree_map(lambda a, k=k: jnp.asarray(a[k]), host)
+        for k, (i, *_rest, n) in enumerate(members):
+            r = jax.tree_util.tree_map(lambda a, k=k: jnp.asarray(a[k]), host)
+            out[i] = eqx.tree_at(lambda r: r.fitted, r, r.fitted[:n])  # the capture's own samples, not the bucket's
     return out

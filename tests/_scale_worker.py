@@ -108,6 +108,7 @@ def _status(res):
 
 
 def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
+    import equinox as eqx
     import jax
 
     import solvers
@@ -124,6 +125,10 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
         # the search subset drawn (`search_pixels`), as on large captures
         ref = solvers.fit_brdf(obs, lighting, search_pixels=300)
         got = solvers.fit_brdf(sobs, lighting, search_pixels=300)
+        # `fitted` has a row per sample of `sobs`: the padding (weight 0, at the end) is the model at sample 0's geometry
+        pad = np.asarray(got.fitted)[obs.n_samples:]
+        out["fitted_padding_is_sample_0"] = bool(np.allclose(pad, np.asarray(got.fitted)[:1], rtol=1e-12, atol=0))
+        got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[: obs.n_samples])
         out["fit_brdf"] = dict(compare(got, ref), status=[_status(got), _status(ref)],
                                sigma=[float(got.brdf.sigma), float(ref.brdf.sigma)])
     if "inverse_lighting" in which:
@@ -136,6 +141,7 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
         print(name, file=sys.stderr, flush=True)
         ref = solvers.factorize(obs, 6, **kw)
         got = solvers.factorize(sobs, 6, **kw)
+        got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[: obs.n_samples])  # a row per sample of `sobs`
         out[name] = dict(compare(got, ref), status=[_status(got), _status(ref)])
     return out
 

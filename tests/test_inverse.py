@@ -124,6 +124,44 @@ def test_fit_brdf_search_on_a_subset_ends_at_the_all_sample_optimum(capture, obs
     assert abs(float(alone.brdf.sigma) - float(full.brdf.sigma)) > 1e-5
 
 
+def test_fit_brdf_refines_only_after_a_search_on_a_subset(capture, obs_clean):
+    """`refine=None` (default) runs Levenberg-Marquardt only when the grid and the simplex used a subset: with every
+    sample (~8,000 < `search_pixels`) the simplex has minimized the very objective LM would, and the estimate equals
+    the refined one to the simplex's tolerance (1e-8 on the parameters). `True` forces the refinement."""
+    auto = solvers.fit_brdf(obs_clean, capture.lighting)
+    forced = solvers.fit_brdf(obs_clean, capture.lighting, refine=True)
+    sub = solvers.fit_brdf(obs_clean, capture.lighting, search_pixels=1500)
+    assert int(auto.stats["num_steps_lm"]) == 0 and int(auto.iterations) == int(auto.stats["num_steps_simplex"])
+    assert int(forced.stats["num_steps_lm"]) > 0 and int(sub.stats["num_steps_lm"]) > 0
+    assert int(sub.stats["search_pixels"]) == 1500
+    for r in (auto, forced, sub):
+        assert solvers.status_name(r.status) == "converged"
+    for a, b in ((auto.brdf.kd, forced.brdf.kd), (auto.brdf.ks, forced.brdf.ks), (auto.brdf.mu, forced.brdf.mu),
+                 (auto.brdf.sigma, forced.brdf.sigma), (auto.std_errors.sigma, forced.std_errors.sigma)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)
+    for bad in ("yes", 1, 0.5):
+        with pytest.raises(ValueError, match="`refine`"):
+            solvers.fit_brdf(obs_clean, capture.lighting, refine=bad)
+
+
+def test_fit_brdf_fitted_is_eq24_at_the_estimate(capture, obs_noisy):
+    """`fitted` is the practical model at the returned estimate, sample by sample: it equals the renderer's images
+    (`solvers.predict` with the exact SH sums, another program) at the object's pixels, and its weighted residual
+    is `rms`."""
+    res = solvers.fit_brdf(obs_noisy, capture.lighting)
+    f = np.asarray(res.fitted)
+    assert f.shape == obs_noisy.values.shape and f.dtype == np.float64
+    for img, gb in zip(obs_noisy.to_images(f), capture.gbuffers):
+        # method="exact": the SH sums, as the fit's terms (the default table interpolation is within ~1e-7)
+        ref = np.asarray(solvers.predict(res.brdf, capture.lighting, gb.normal, gb.view, mask=gb.mask, method="exact"))
+        m = np.asarray(gb.mask)
+        np.testing.assert_allclose(img[m], ref[m], rtol=1e-10, atol=1e-13)
+    w, b = np.asarray(obs_noisy.weights), np.asarray(obs_noisy.values)
+    rms = np.sqrt(np.sum(w[:, None] * (f - b) ** 2) / (np.count_nonzero(w > 0) * b.shape[1]))
+    np.testing.assert_allclose(rms, float(res.rms), rtol=1e-10)
+    assert rms > 0.005 * np.sqrt(np.mean(b**2))  # the 1 % noise is in the residual: `fitted` is not the data
+
+
 def test_fit_brdf_float32(capture, obs_clean):
     obs32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, obs_clean)
     light32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), capture.lighting)
@@ -504,6 +542,33 @@ def test_factorize_predicts_a_held_out_view_under_a_new_light(factorization):
     assert err < 0.05, err
 
 
+def _weighted_rms(obs, fitted):
+    w, b = np.asarray(obs.weights), np.asarray(obs.values)
+    return np.sqrt(np.sum(w[:, None] * (np.asarray(fitted) - b) ** 2) / (np.count_nonzero(w > 0) * b.shape[1]))
+
+
+def test_factorize_fitted_is_the_model_at_the_estimate(capture, obs_noisy, factorization):
+    """After the refinement, `fitted` is eq. 24 with the returned BRDF and lighting (slow SH + the found source):
+    it equals the renderer's images (`solvers.predict`, exact SH sums: another program) and its weighted residual
+    is the result's `rms`. Without the refinement it is eq. 25 of the first stage, whose residual is that rms."""
+    res = factorization
+    assert res.fitted.shape == obs_noisy.values.shape
+    for img, gb in zip(obs_noisy.to_images(res.fitted), capture.gbuffers):
+        ref = np.asarray(solvers.predict(res.brdf, res.lighting, gb.normal, gb.view, mask=gb.mask, method="exact"))
+        m = np.asarray(gb.mask)
+        np.testing.assert_allclose(img[m], ref[m], rtol=1e-9, atol=1e-12 * np.abs(ref[m]).max())
+    np.testing.assert_allclose(_weighted_rms(obs_noisy, res.fitted), float(res.rms), rtol=1e-9)
+    assert float(res.rel_rms) > 0.005  # the 1 % noise (and the model's error) is in the residual
+    for kw in ({"find_sigma": False, "refine": False}, {"refine": False}):
+        r = solvers.factorize(obs_noisy, 8, **kw)
+        assert r.fitted.shape == obs_noisy.values.shape
+        np.testing.assert_allclose(_weighted_rms(obs_noisy, r.fitted), float(r.rms), rtol=1e-9)
+    # the search on a subset, the final solve (and `fitted`) on every sample
+    r = solvers.factorize(obs_noisy, 8, search_pixels=3000)
+    assert r.fitted.shape == obs_noisy.values.shape
+    np.testing.assert_allclose(_weighted_rms(obs_noisy, r.fitted), float(r.rms), rtol=1e-9)
+
+
 def test_factorize_options(obs_noisy):
     r0 = solvers.factorize(obs_noisy, 8, find_sigma=False, refine=False)
     assert bool(jnp.isnan(r0.brdf.sigma)) and r0.source is None
@@ -577,6 +642,11 @@ def test_textured_kd_on_a_self_shadowing_mesh():
     assert err < 0.03, err
     assert np.all(np.isinf(np.asarray(res.std_errors.kd)[~seen]))
     assert _rel(res.brdf.sigma, sigma) < 0.15
+    # `fitted` carries each sample's own texel K_d: its weighted residual is the fit's
+    f, b, w = np.asarray(res.fitted), np.asarray(obs.values), np.asarray(obs.weights)
+    assert f.shape == b.shape
+    np.testing.assert_allclose(np.sqrt(np.sum(w[:, None] * (f - b) ** 2) / (np.count_nonzero(w > 0) * b.shape[1])),
+                               float(res.rms), rtol=1e-10)
 
 
 # --------------------------------------------------------------------------- bad input

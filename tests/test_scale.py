@@ -63,6 +63,7 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
         assert _agrees(got["rel"], got["steps"]), (name, got)
     assert r["inverse_lighting"]["rel"] < TOL  # a direct solve: rounding only
     assert abs(r["fit_brdf"]["sigma"][1] - 0.15) < 0.01  # a real fit, not a trivial one
+    assert r["fitted_padding_is_sample_0"]  # `fitted` of the padded samples: sample 0's geometry (compared above: the rest)
 
 
 # factorize's stage 1 finds K_s by golden section and mu by a parabola through RSS values: a minimizer located
