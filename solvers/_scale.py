@@ -174,7 +174,7 @@ def _fit_batch(terms, b, w, u_grid, fresnel, refine, max_steps, rtol, atol, bloc
     """The fits of a stack of captures: `vmap`ped (`blocks` False), or, with `(D, m, ...)` inputs sharded over
     `D` devices (`blocks` True), `vmap`ped over the device axis and one member at a time (`lax.map`) within a block.
 
-    In the second form every LAPACK call (the Levenberg-Marquardt SVD, the covariance `eigh`) has batch `D` and,
+    In the second form every LAPACK call (the covariance `eigh`, the Levenberg-Marquardt SVD) has batch `D` and,
     once GSPMD splits the device axis, batch 1 on each device: jaxlib's CPU kernels never fan a batch out into the
     intra-op pool that the forced host devices share (`fit_many`)."""
     def one(args):
@@ -222,8 +222,8 @@ def fit_many(
     of the mesh size (their results are dropped) and sharded along the batch
     axis; each device fits its block `vmap`ped on a GPU and one capture at a
     time (`lax.map`) on CPU devices. The reason:
-    a `vmap`ped fit batches its LAPACK calls (the Levenberg–Marquardt SVD, the
-    covariance `eigh`), jaxlib runs a batched CPU LAPACK call by fanning out
+    a `vmap`ped fit batches its LAPACK calls (the covariance `eigh`, and with
+    `refine=True` the Levenberg–Marquardt SVD), jaxlib runs a batched CPU LAPACK call by fanning out
     into the intra-op thread pool and waiting inside it, and forced host
     devices (`--xla_force_host_platform_device_count`) share that one pool:
     with 4 devices on 2 cores a batched `eigh` hung (native stacks in

@@ -559,7 +559,7 @@ def test_factorize_fitted_is_the_model_at_the_estimate(capture, obs_noisy, facto
         np.testing.assert_allclose(img[m], ref[m], rtol=1e-9, atol=1e-12 * np.abs(ref[m]).max())
     np.testing.assert_allclose(_weighted_rms(obs_noisy, res.fitted), float(res.rms), rtol=1e-9)
     assert float(res.rel_rms) > 0.005  # the 1 % noise (and the model's error) is in the residual
-    for kw in ({"find_sigma": False, "refine": False}, {"refine": False}):
+    for kw in ({"find_sigma": False, "refine": False}, {"refine": False}, {"fresnel": False, "refine": False}):
         r = solvers.factorize(obs_noisy, 8, **kw)
         assert r.fitted.shape == obs_noisy.values.shape
         np.testing.assert_allclose(_weighted_rms(obs_noisy, r.fitted), float(r.rms), rtol=1e-9)
