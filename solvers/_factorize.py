@@ -672,7 +672,7 @@ def factorize(
 
     def result(brdf, lighting, source, std, status, iterations, rms, rel, stats, fitted=None):
         if fitted is None:  # eq. 25 of the first stage
-            fitted = _stage1_fitted(obs, mu, ks, filtered, lmax)
+            fitted = _stage1_fitted(obs, mu, ks, filtered, lmax, chunk)
         res = FactorizationResult(brdf=brdf, lighting=lighting, filtered_sh=filtered, source=source, std_errors=std,
                                   status=status, iterations=jnp.asarray(iterations), rms=rms, rel_rms=rel, stats=stats,
                                   dual=dual, fitted=fitted)
@@ -1220,8 +1220,23 @@ def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int):
 
 
 @jaxsh.jit
-def _stage1_fitted(o: Observations, mu, ks, coeffs, lmax: int):
+def _stage1_fitted(o: Observations, mu, ks, coeffs, lmax: int, chunk: int):
     """Eq. 25 at `(ks, mu)` with the lighting `coeffs` `(n, C)` (the first stage's model: one set of coefficients
-    for the diffuse l <= 2 and the specular rows), `(N, C)`."""
-    d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax, coeffs_first=True)
-    return ((1.0 - ks)[:, None] * (coeffs[:9].T @ d) + ks[:, None] * (coeffs.T @ s)).T
+    for the diffuse l <= 2 and the specular rows), `(N, C)`, in chunks of `chunk` pixels (`lax.map`: the rows of
+    one chunk at a time, as `accumulate_gram` forms them)."""
+    npx = o.n_samples
+    pad = (-npx) % chunk
+
+    def cut(a):  # (N, ...) -> (N / chunk, chunk, ...), zero-padded
+        return None if a is None else jnp.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1)).reshape((-1, chunk) + a.shape[1:])
+
+    def one(x):
+        n, v, t, r = x
+        d, s = eq25_rows(n, v, t, r, mu, None, lmax, coeffs_first=True)
+        return ((1.0 - ks)[:, None] * (coeffs[:9].T @ d) + ks[:, None] * (coeffs.T @ s)).T
+
+    up = jnp.zeros((pad, 3), o.normals.dtype).at[:, 2].set(1.0)  # padding pixels: valid unit vectors
+    xs = (jnp.concatenate([o.normals, up]).reshape(-1, chunk, 3), jnp.concatenate([o.views, up]).reshape(-1, chunk, 3),
+          cut(o.transfer), cut(o.reflected_visibility))
+    out = jax.lax.map(one, xs)
+    return out.reshape(-1, out.shape[-1])[:npx]

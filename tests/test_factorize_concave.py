@@ -88,3 +88,11 @@ def test_factorize_concave_uses_the_source_shadow(snowman):
     assert a[1] < 0.3 and a[2] < 0.1 and a[3] < 0.1
     assert b[1] > 2 * a[1] and b[2] > 2 * a[2]
     assert float(with_vis.rel_rms) < 0.5 * float(without.rel_rms)
+    # `fitted` carries the visibility terms (transfer vectors, the source's shadow, reflected visibility): its weighted
+    # residual is the result's, after the refinement and (eq. 25 of the first stage) without it
+    w, v = np.asarray(snowman.weights), np.asarray(snowman.values)
+    stage1 = solvers.factorize(snowman, 8, fresnel=False, refine=False)
+    for res in (with_vis, stage1):
+        f = np.asarray(res.fitted)
+        rms = np.sqrt(np.sum(w[:, None] * (f - v) ** 2) / (np.count_nonzero(w > 0) * v.shape[1]))
+        np.testing.assert_allclose(rms, float(res.rms), rtol=1e-9)
