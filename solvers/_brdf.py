@@ -247,9 +247,7 @@ def fit_brdf(
     atol = None if atol is None else check_float(atol, "atol")
     if textured not in (None, "kd", "kd_ks"):
         raise ValueError(f"`textured` must be None, 'kd' or 'kd_ks', got {textured!r}")
-    if refine is not None and not isinstance(refine, (bool, np.bool_)):
-        raise ValueError(f"`refine` must be None, True or False, got {refine!r}")
-    refine = None if refine is None else bool(refine)
+    refine = check_refine(refine)
     if textured is not None and (obs.texel is None or obs.n_texels < 1):
         raise ValueError("`textured` fits need `obs.texel` (pass `texel=` to solvers.observations)")
     dt = obs.values.dtype
@@ -275,6 +273,13 @@ def fit_brdf(
     res = _fit_brdf(terms, obs.values, obs.weights, obs.texel, u_grid, obs.n_texels, fresnel, textured, refine,
                     int(max_steps), rtol, atol, search)
     return finish(res, throw)
+
+
+def check_refine(refine) -> bool | None:
+    """`fit_brdf`'s and `fit_many`'s `refine`: None, True or False (a `ValueError` naming it otherwise)."""
+    if refine is not None and not isinstance(refine, (bool, np.bool_)):
+        raise ValueError(f"`refine` must be None, True or False, got {refine!r}")
+    return None if refine is None else bool(refine)
 
 
 def _search_samples(weights, m: int):

@@ -87,7 +87,7 @@ from ._host_random import host_rng
 from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
-                                mirror_table, pinv_psd, solve_spd_small)
+                                mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
 from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
@@ -1224,19 +1224,10 @@ def _stage1_fitted(o: Observations, mu, ks, coeffs, lmax: int, chunk: int):
     """Eq. 25 at `(ks, mu)` with the lighting `coeffs` `(n, C)` (the first stage's model: one set of coefficients
     for the diffuse l <= 2 and the specular rows), `(N, C)`, in chunks of `chunk` pixels (`lax.map`: the rows of
     one chunk at a time, as `accumulate_gram` forms them)."""
-    npx = o.n_samples
-    pad = (-npx) % chunk
-
-    def cut(a):  # (N, ...) -> (N / chunk, chunk, ...), zero-padded
-        return None if a is None else jnp.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1)).reshape((-1, chunk) + a.shape[1:])
-
     def one(x):
         n, v, t, r = x
         d, s = eq25_rows(n, v, t, r, mu, None, lmax, coeffs_first=True)
         return ((1.0 - ks)[:, None] * (coeffs[:9].T @ d) + ks[:, None] * (coeffs.T @ s)).T
 
-    up = jnp.zeros((pad, 3), o.normals.dtype).at[:, 2].set(1.0)  # padding pixels: valid unit vectors
-    xs = (jnp.concatenate([o.normals, up]).reshape(-1, chunk, 3), jnp.concatenate([o.views, up]).reshape(-1, chunk, 3),
-          cut(o.transfer), cut(o.reflected_visibility))
-    out = jax.lax.map(one, xs)
-    return out.reshape(-1, out.shape[-1])[:npx]
+    out = jax.lax.map(one, pixel_chunks(o.normals, o.views, chunk, o.transfer, o.reflected_visibility))
+    return out.reshape(-1, out.shape[-1])[: o.n_samples]

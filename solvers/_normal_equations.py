@@ -93,6 +93,20 @@ def eq25_rows(n, v, transfer, rvis, mu, filt, lmax: int, coeffs_first: bool = Fa
     return (d, s) if coeffs_first else (d.T, s.T)
 
 
+def pixel_chunks(n, v, chunk: int, *fields):
+    """`n`, `v` `(N, 3)` and each of `fields` (`(N, ...)` or None) cut into `(N / chunk, chunk, ...)` blocks, padded
+    to a multiple of `chunk`: the directions with +z (valid unit vectors), the other fields with 0 (weight 0 for
+    weights). Returns a tuple in the order of the arguments."""
+    pad = (-n.shape[0]) % chunk
+    up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
+
+    def cut(a):
+        return None if a is None else jnp.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1)).reshape((-1, chunk) + a.shape[1:])
+
+    return (jnp.concatenate([n, up]).reshape(-1, chunk, 3), jnp.concatenate([v, up]).reshape(-1, chunk, 3),
+            *(cut(a) for a in fields))
+
+
 def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int, rows: bool = False):
     """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding).
 
@@ -102,13 +116,7 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
     reads them). Returns `Gram` or `(Gram, rows)`."""
     npx = n.shape[0]
     pad = (-npx) % chunk
-    up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
-    n_p = jnp.concatenate([n, up]).reshape(-1, chunk, 3)
-    v_p = jnp.concatenate([v, up]).reshape(-1, chunk, 3)
-    b_p = jnp.pad(b, ((0, pad), (0, 0))).reshape(-1, chunk, b.shape[1])
-    w_p = jnp.pad(w, (0, pad)).reshape(-1, chunk)
-    t_p = None if transfer is None else jnp.pad(transfer, ((0, pad), (0, 0))).reshape(-1, chunk, transfer.shape[1])
-    r_p = None if rvis is None else jnp.pad(rvis, (0, pad)).reshape(-1, chunk)
+    n_p, v_p, b_p, w_p, t_p, r_p = pixel_chunks(n, v, chunk, b, w, transfer, rvis)
     nc = (lmax + 1) ** 2
     c = b.shape[1]
     dt = n.dtype

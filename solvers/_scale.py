@@ -52,7 +52,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 import jaxsh
 
-from ._brdf import BRDFResult, _fit_brdf
+from ._brdf import BRDFResult, _fit_brdf, check_refine
 from ._data import Lighting, Observations, practical_terms_for, view_lightings
 from ._results import check_float, check_int
 from ._threads import blas_single_thread
@@ -238,9 +238,7 @@ def fit_many(
         raise ValueError("`captures` is empty: give at least one (obs, lighting) pair")
     max_steps = check_int(max_steps, "max_steps")
     min_bucket = check_int(min_bucket, "min_bucket")
-    if refine is not None and not isinstance(refine, (bool, np.bool_)):
-        raise ValueError(f"`refine` must be None, True or False, got {refine!r}")
-    refine = bool(refine) if refine is not None else False  # None: as fit_brdf whose search saw every sample
+    refine = bool(check_refine(refine))  # None: as fit_brdf whose search saw every sample (no refinement)
     rtol = None if rtol is None else check_float(rtol, "rtol")
     atol = None if atol is None else check_float(atol, "atol")
     if mesh is not None:
