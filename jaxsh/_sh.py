@@ -39,8 +39,8 @@ from ._indexing import sh_degrees, sh_orders
 # The kernel (`_rows_chunk`) runs the recurrence over l as a rolled loop on a chunk of points laid out
 # (coefficients, points): its compiled size does not grow with lmax (measured on 2 cores: 0.12-0.19 s of XLA
 # compilation at any lmax, against 0.6-1.5 s for the former Python-unrolled bands at lmax 12-20), and each row
-# operation is vectorized over the chunk. A chunk holds about `_CHUNK_BYTES` of output.
-_CHUNK_BYTES = 1 << 19
+# operation is vectorized over the chunk of `_CHUNK_POINTS` points (`_chunk_size`).
+_CHUNK_POINTS = 128
 # At lmax <= 2 (the irradiance's 9 harmonics, in every diffuse term) the recurrence is written out instead
 # (`_basis_unrolled`: 9 polynomials of degree <= 2, one elementwise pass without loops): measured at 154,000
 # points, 0.07-0.1 s less XLA compilation and 0.02 s less tracing per program that holds it, and it runs as fast
@@ -318,10 +318,16 @@ def _rows_chunk(feat, lmax: int):
 
 
 def _chunk_size(lmax: int) -> int:
-    """Points per chunk of `_real_sh_flat`: at most `_CHUNK_BYTES` of float64 output, a power of 2 in [16, 256]
-    (measured at 10⁶ points, lmax 8 and 16: 128-256 points per chunk ran fastest, 512-1024 up to 1.8× slower)."""
-    c = _CHUNK_BYTES // (8 * ((lmax + 1) ** 2 + 2))
-    return int(min(256, max(16, 1 << max(int(c).bit_length() - 1, 0))))
+    """Points per chunk of `_real_sh_flat`: `_CHUNK_POINTS` (128) at every `lmax`.
+
+    Measured on 2 cores at 10⁵ directions, both dtypes and layouts, chunks of 16-512 points: 128 ran fastest
+    or within the noise of the fastest at lmax 8-48. Each loop step works on a window of 2·lmax+1 rows of the
+    chunk, so the chunk need not shrink as lmax grows: the former rule (at most 512 KB of float64 output per
+    chunk: 64 points at lmax 24, 16 at lmax 48) took 1.1-1.5× (lmax 24) and 1.2-2.5× (lmax 48) as long, the
+    per-step overhead of a loop step outweighing the cache it saved. 512 points ran up to 2× slower
+    (docs/performance.md, tenth round)."""
+    del lmax
+    return _CHUNK_POINTS
 
 
 def _real_sh_flat(unit, lmax: int, coeffs_first: bool = False):
