@@ -321,10 +321,10 @@ def _chunk_size(lmax: int) -> int:
     """Points per chunk of `_real_sh_flat`: `_CHUNK_POINTS` (128) at every `lmax`.
 
     Measured on 2 cores at 10⁵ directions, both dtypes and layouts, chunks of 16-512 points: 128 ran fastest
-    or within the noise of the fastest at lmax 8-48. Each loop step works on a window of 2·lmax+1 rows of the
+    or within 10 % of the fastest at lmax 8-48. Each loop step works on a window of 2·lmax+1 rows of the
     chunk, so the chunk need not shrink as lmax grows: the former rule (at most 512 KB of float64 output per
-    chunk: 64 points at lmax 24, 16 at lmax 48) took 1.1-1.5× (lmax 24) and 1.2-2.5× (lmax 48) as long, the
-    per-step overhead of a loop step outweighing the cache it saved. 512 points ran up to 2× slower
+    chunk: 64 points at lmax 24, 16 at lmax 48) took 1.0-1.5× (lmax 24) and 1.1-2.5× (lmax 48) as long, the
+    overhead of each loop step outweighing the cache it saved. 512 points ran up to 2× slower
     (docs/performance.md, tenth round)."""
     del lmax
     return _CHUNK_POINTS
