@@ -12,6 +12,12 @@ project_latlong, render_practical, fit_brdf, factorize). docs/performance.md has
 
 These are options of each compiled program (`jax.jit(..., compiler_options=...)`), not of the
 process: nothing global changes, and a program the user jits is compiled as the user says.
+
+`jit(..., optimize=False)` adds XLA's backend optimization level 0 (XLA's default is 3) for a program
+that runs once per call and briefly, where the compilation is most of what the user waits for:
+`solvers.factorize`'s `_golden_batch`, `_lighting_and_source` and `_refine_final` compile in 1.9 s less
+in all (3×256², XLA's own log: 5.4 s → 3.5 s over the call's programs) and run 60-100 ms slower per
+call in all (docs/performance.md, "Eleventh round").
 """
 
 from __future__ import annotations
@@ -26,13 +32,15 @@ import numpy as np
 
 # the option and the value jaxsh compiles with (see the module docstring)
 _WANTED = {"xla_cpu_use_fusion_emitters": False}
+# added for the programs of `jit(..., optimize=False)`
+_UNOPTIMIZED = {"xla_backend_optimization_level": 0}
 
 
 @functools.lru_cache(maxsize=None)
-def _probed_options() -> tuple[tuple[str, Any], ...]:
+def _probed_options(optimize: bool = True) -> tuple[tuple[str, Any], ...]:
     flags = os.environ.get("XLA_FLAGS", "")
     out = []
-    for name, value in _WANTED.items():
+    for name, value in (_WANTED if optimize else {**_WANTED, **_UNOPTIMIZED}).items():
         if name in flags:  # the user chose it for the process: theirs wins
             continue
         try:  # this jax/jaxlib knows the option (older ones do not have it; newer ones may drop it)
@@ -43,18 +51,22 @@ def _probed_options() -> tuple[tuple[str, Any], ...]:
     return tuple(out)
 
 
-def compile_options() -> dict[str, Any]:
+def compile_options(optimize: bool = True) -> dict[str, Any]:
     """The XLA compile options of jaxsh's jitted programs (a new dict; empty when none apply).
 
     `{"xla_cpu_use_fusion_emitters": False}` where the installed jaxlib has the option: XLA's
     LLVM IR emitters compile jaxsh's programs 25-40 % faster than its MLIR fusion emitters and the
-    programs run as fast (docs/performance.md, "First calls"). The option is left out when
-    `XLA_FLAGS` names it (the process's setting then applies) or when this jaxlib rejects it;
-    checked once per process, at the first call of a jaxsh program, by compiling a one-line
-    program. Pass the result to your own `jax.jit(..., compiler_options=...)` to compile a
-    pipeline around jaxsh the same way, or use `jaxsh.jit`.
+    programs run as fast (docs/performance.md, "First calls"). With `optimize=False` (the programs
+    of `jaxsh.jit(..., optimize=False)`), also `{"xla_backend_optimization_level": 0}`: faster
+    compilation, slower code (module docstring). An option is left out when `XLA_FLAGS` names it
+    (the process's setting then applies) or when this jaxlib rejects it; checked once per process,
+    at the first call of a jaxsh program, by compiling a one-line program. Pass the result to your
+    own `jax.jit(..., compiler_options=...)` to compile a pipeline around jaxsh the same way, or use
+    `jaxsh.jit`.
     """
-    return dict(_probed_options())
+    if not isinstance(optimize, bool):
+        raise ValueError(f"`optimize` must be a bool, got {optimize!r}")
+    return dict(_probed_options(optimize))
 
 
 class _LazyJit:
@@ -65,16 +77,17 @@ class _LazyJit:
     into the caller's program, which is compiled as the caller says. Both versions are built at
     the first call, so that importing jaxsh initializes no backend and compiles nothing."""
 
-    def __init__(self, fun, kwargs):
+    def __init__(self, fun, kwargs, optimize=True):
         self._fun = fun
         self._kwargs = kwargs
+        self._optimize = optimize
         self._plain = None
         self._tuned = None
         functools.update_wrapper(self, fun)
 
     def _versions(self):
         if self._plain is None:
-            opts = compile_options()
+            opts = compile_options(self._optimize)
             self._tuned = eqx.filter_jit(self._fun, compiler_options=opts, **self._kwargs) if opts else None
             self._plain = eqx.filter_jit(self._fun, **self._kwargs)
         return self._plain, self._tuned
@@ -95,12 +108,16 @@ class _LazyJit:
         return (tuned or plain).lower(*args, **kwargs)
 
 
-def jit(fun=None, **kwargs):
+def jit(fun=None, *, optimize: bool = True, **kwargs):
     """`equinox.filter_jit` (arrays traced, everything else static) compiled with `compile_options()`.
 
     Usable as `@jaxsh.jit`, `jaxsh.jit(f)` or `jaxsh.jit(donate="all")(f)`; `kwargs` are those of
     `equinox.filter_jit`. Every jitted program of jaxsh and of `solvers` is made this way.
+    `optimize=False`: compiled with `compile_options(optimize=False)` (XLA's backend optimization
+    level 0), for a program whose compilation costs far more than its run (module docstring).
     """
+    if not isinstance(optimize, bool):
+        raise ValueError(f"`optimize` must be a bool, got {optimize!r}")
     if fun is None:
-        return functools.partial(jit, **kwargs)
-    return _LazyJit(fun, kwargs)
+        return functools.partial(jit, optimize=optimize, **kwargs)
+    return _LazyJit(fun, kwargs, optimize)

@@ -40,7 +40,11 @@ table, that final solve runs the rounds' own compiled programs (`_mu_blocks`,
 the pass over all pixels also makes their eq.-25 rows for the refinement
 (`_all_pixel_blocks`); the lighting and eq. 26 are one program
 (`_lighting_and_source`). Fewer, shared programs are what a first call waits
-for (XLA compilation; docs/performance.md).
+for (XLA compilation; docs/performance.md). The three programs that run for
+milliseconds but took 0.6-1.0 s each to compile (`_golden_batch`,
+`_lighting_and_source`, `_refine_final`) are compiled without XLA's backend
+optimizations (`jaxsh.jit(optimize=False)`): 1.9 s less compilation, 60-100 ms
+more run time per call (docs/performance.md, "Eleventh round").
 
 **Roughness (eq. 26).** $\\sigma$ comes from the recovered (filtered)
 lighting with $L_{cen} \\approx L_{tot}/(4\\pi\\sigma^2)$, evaluated with the
@@ -781,7 +785,7 @@ def _mu_blocks(tab: MirrorTable, mus, lmax, rcond) -> _Blocks:
     return _Blocks(g, *_pinv_each(g.ss[:, 9:, 9:], rcond))
 
 
-@jaxsh.jit
+@jaxsh.jit(optimize=False)
 def _golden_batch(bl: _Blocks):
     """`_golden_ks` (tolerances 1e-11) for each of a batch of `_Blocks` (leading K): the profiled relative RSS
     of each `(K,)`, and K_s `(C,)` and the golden steps `(C,)` of the first. One program serves the mu rounds
@@ -803,7 +807,7 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
     return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl), rows_obs
 
 
-@jaxsh.jit
+@jaxsh.jit(optimize=False)
 def _lighting_and_source(bl: _Blocks, ks, lmax: int, rcond, region, source: bool):
     """The eq.-25 lighting at the stage-1 BRDF from the first of the batched blocks `bl`, and (with `source`)
     the source and sigma of eq. 26 in it (`find_source` on a 128 x 256 map): one program. Only what `factorize`
@@ -1184,7 +1188,7 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
     return hess, (rss[4], x1[4], x2[4])  # the stencil's centre (steps 0, 0) is `_joint_rss` at (ks, sigma)
 
 
-@jaxsh.jit
+@jaxsh.jit(optimize=False)
 def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int):
     """The refinement's estimate at `(ks, sigma)`: lighting, standard errors, rms, and the model at the first `n`
     pixels of `jt` (`jt` may carry weight-0 padding after them)."""

@@ -52,6 +52,37 @@ def test_rejected_option_is_left_out(fresh_probe):
     np.testing.assert_allclose(f(jnp.asarray([0.5, 1.5])), np.sin([0.5, 1.5]) + 1.0, rtol=1e-15)
 
 
+def test_unoptimized_options(fresh_probe, monkeypatch):
+    """`optimize=False` adds XLA's backend optimization level 0 to the options (where accepted and not named
+    by `XLA_FLAGS`), reaches the compilation of a `jaxsh.jit(..., optimize=False)` program, and the program
+    computes what the optimized one does."""
+    fresh_probe.delenv("XLA_FLAGS", raising=False)
+    want = {k: v for k, v in {**_compile._WANTED, **_compile._UNOPTIMIZED}.items() if _accepts(k, v)}
+    assert want.get("xla_backend_optimization_level") == 0  # this jaxlib has it: the rest of the test means something
+    assert jaxsh.compile_options(optimize=False) == want
+    assert "xla_backend_optimization_level" not in jaxsh.compile_options()
+    with pytest.raises(ValueError, match="optimize"):
+        jaxsh.compile_options(optimize=0)
+    with pytest.raises(ValueError, match="optimize"):
+        jaxsh.jit(lambda x: x, optimize="no")
+    seen = []
+    real = eqx.filter_jit
+
+    def spy(fun, **kw):
+        seen.append(kw.get("compiler_options"))
+        return real(fun, **kw)
+
+    monkeypatch.setattr(_compile.eqx, "filter_jit", spy)
+    d = jnp.asarray(np.random.default_rng(5).normal(size=(65, 3)))
+    slow = jaxsh.jit(lambda v: jaxsh.real_sh(v, 5), optimize=False)
+    fast = jaxsh.jit(lambda v: jaxsh.real_sh(v, 5))
+    np.testing.assert_allclose(np.asarray(slow(d)), np.asarray(fast(d)), atol=1e-14, rtol=0)
+    assert want in seen  # the level-0 options were handed to the compilation
+    fresh_probe.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
+    _compile._probed_options.cache_clear()
+    assert "xla_backend_optimization_level" not in jaxsh.compile_options(optimize=False)
+
+
 def test_xla_flags_naming_the_option_win(fresh_probe):
     fresh_probe.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
     assert "xla_cpu_use_fusion_emitters" not in jaxsh.compile_options()
