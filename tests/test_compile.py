@@ -76,7 +76,11 @@ def test_unoptimized_options(fresh_probe, monkeypatch):
     d = jnp.asarray(np.random.default_rng(5).normal(size=(65, 3)))
     slow = jaxsh.jit(lambda v: jaxsh.real_sh(v, 5), optimize=False)
     fast = jaxsh.jit(lambda v: jaxsh.real_sh(v, 5))
-    np.testing.assert_allclose(np.asarray(slow(d)), np.asarray(fast(d)), atol=1e-14, rtol=0)
+    got = np.asarray(slow(d))
+    np.testing.assert_allclose(got, np.asarray(fast(d)), atol=1e-14, rtol=0)
+    u = np.asarray(d) / np.linalg.norm(np.asarray(d), axis=1, keepdims=True)
+    ref = scipy.special.sph_harm_y(4, 0, np.arccos(u[:, 2]), np.arctan2(u[:, 1], u[:, 0])).real  # Y_{4,0}: real
+    np.testing.assert_allclose(got[:, 20], ref, atol=1e-13)
     assert want in seen  # the level-0 options were handed to the compilation
     fresh_probe.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
     _compile._probed_options.cache_clear()
