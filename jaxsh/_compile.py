@@ -64,9 +64,14 @@ def compile_options(optimize: bool = True) -> dict[str, Any]:
     own `jax.jit(..., compiler_options=...)` to compile a pipeline around jaxsh the same way, or use
     `jaxsh.jit`.
     """
+    return dict(_probed_options(_checked_optimize(optimize)))
+
+
+def _checked_optimize(optimize):
+    """`optimize` itself, or a `ValueError` when it is not a bool (`compile_options`, `jit`)."""
     if not isinstance(optimize, bool):
         raise ValueError(f"`optimize` must be a bool, got {optimize!r}")
-    return dict(_probed_options(optimize))
+    return optimize
 
 
 class _LazyJit:
@@ -116,8 +121,7 @@ def jit(fun=None, *, optimize: bool = True, **kwargs):
     `optimize=False`: compiled with `compile_options(optimize=False)` (XLA's backend optimization
     level 0), for a program whose compilation costs far more than its run (module docstring).
     """
-    if not isinstance(optimize, bool):
-        raise ValueError(f"`optimize` must be a bool, got {optimize!r}")
+    _checked_optimize(optimize)
     if fun is None:
         return functools.partial(jit, optimize=optimize, **kwargs)
     return _LazyJit(fun, kwargs, optimize)
