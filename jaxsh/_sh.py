@@ -41,10 +41,10 @@ from ._indexing import sh_degrees, sh_orders
 # compilation at any lmax, against 0.6-1.5 s for the former Python-unrolled bands at lmax 12-20), and each row
 # operation is vectorized over the chunk of `_CHUNK_POINTS` points (`_chunk_size`).
 _CHUNK_POINTS = 128
-# At lmax <= 2 (the irradiance's 9 harmonics, in every diffuse term) the recurrence is written out instead
-# (`_basis_unrolled`: 9 polynomials of degree <= 2, one elementwise pass without loops): measured at 154,000
-# points, 0.07-0.1 s less XLA compilation and 0.02 s less tracing per program that holds it, and it runs as fast
-# or faster (1.1 against 8.8 ms at lmax 1). From lmax 3 the rolled loop compiles as fast and from 4 faster.
+# At lmax <= 2 (the irradiance's 9 harmonics, in every diffuse term) the harmonics are written out instead
+# (`_basis_low`: polynomials of degree <= 2 in one elementwise pass, no loop): measured at 154,000 points, 0.07-0.1 s
+# less XLA compilation and 0.02 s less tracing per program that holds it than the rolled loop, and it runs as fast
+# or faster. From lmax 3 the rolled loop compiles as fast and from 4 faster.
 _UNROLLED_LMAX = 2
 
 
@@ -90,41 +90,55 @@ def _unit_vectors(dirs, name: str = "dirs", check: bool = True):
     return dirs * jax.lax.rsqrt(norm2)
 
 
-def _basis_unrolled(x, y, z, lmax: int):
-    """List of the (lmax+1)**2 real SH, in flat order, as arrays shaped like x (the recurrence of the module
-    docstring written out; `_real_sh_flat` at `lmax <= _UNROLLED_LMAX`)."""
-    diag = _diag_constants(lmax)
-    c = [jnp.ones_like(x)]
-    s = [jnp.zeros_like(x)]
-    for m in range(1, lmax + 1):
-        c.append(x * c[m - 1] - y * s[m - 1])
-        s.append(x * s[m - 1] + y * c[m - 1])
-    # q[m] holds (q_{l-1}^m, q_{l-2}^m) as the loop over l proceeds.
-    prev = {}
-    out = []
-    for l in range(lmax + 1):
-        row = {}
-        for m in range(l + 1):
-            if m == l:
-                q = float(diag[l] * (np.sqrt(2.0) if m > 0 else 1.0))
-            elif m == l - 1:
-                q = float(np.sqrt(2 * l + 1)) * z * prev[m][0]
-            else:
-                alm = float(np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m)))
-                blm = float(np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0)))
-                q = alm * (z * prev[m][0] - blm * prev[m][1])
-            row[m] = q
-        for m in range(l + 1):
-            prev[m] = (row[m], prev[m][0] if m in prev else None)
-        for m in range(-l, l + 1):
-            q = row[abs(m)]
-            if m == 0:
-                out.append(q * c[0] if isinstance(q, float) else q)  # l = 0: a constant
-            elif m > 0:
-                out.append(q * c[m])
-            else:
-                out.append(q * s[-m])
-    return out
+# Monomials of `_basis_low`, in the order of the rows of `_low_degree_table`.
+_MONOMIALS = ("1", "x", "y", "z", "xx", "yy", "zz", "xy", "yz", "xz")
+
+
+@functools.lru_cache(maxsize=None)
+def _low_degree_table(lmax: int) -> tuple[tuple[int, ...], np.ndarray]:
+    """The real SH up to `lmax` <= 2 as polynomials of the unit vector: $Y_k = \\sum_j T_{jk}\\,\\mu_j$.
+
+    The recurrence of the module docstring written out at l <= 2, with $\\bar q_0^0 = 1/\\sqrt{4\\pi}$:
+    $Y_{00} = \\tfrac12\\sqrt{1/\\pi}$; $(Y_{1,-1}, Y_{10}, Y_{11}) = \\sqrt{3/4\\pi}\\,(y, z, x)$;
+    $(Y_{2,-2}, Y_{2,-1}, Y_{21}) = \\tfrac12\\sqrt{15/\\pi}\\,(xy, yz, xz)$;
+    $Y_{20} = \\tfrac14\\sqrt{5/\\pi}\\,(3z^2 - 1)$; $Y_{22} = \\tfrac14\\sqrt{15/\\pi}\\,(x^2 - y^2)$ (the constants
+    0.282095, 0.488603, 1.092548, 0.315392, 0.546274 of Ramamoorthi & Hanrahan's irradiance maps, SIGGRAPH
+    2001, eq. 3). Returns the indices into `_MONOMIALS` of the monomials that appear and their rows of T,
+    float64 `(n_monomials, (lmax+1)**2)`.
+    """
+    c0, c1 = 0.5 / np.sqrt(np.pi), np.sqrt(3.0 / (4.0 * np.pi))
+    c2, c20, c22 = 0.5 * np.sqrt(15.0 / np.pi), 0.25 * np.sqrt(5.0 / np.pi), 0.25 * np.sqrt(15.0 / np.pi)
+    j = {m: i for i, m in enumerate(_MONOMIALS)}
+    t = np.zeros((len(_MONOMIALS), 9))
+    t[j["1"], 0] = c0
+    t[j["y"], 1], t[j["z"], 2], t[j["x"], 3] = c1, c1, c1
+    t[j["xy"], 4], t[j["yz"], 5], t[j["xz"], 7] = c2, c2, c2
+    t[j["zz"], 6], t[j["1"], 6] = 3.0 * c20, -c20
+    t[j["xx"], 8], t[j["yy"], 8] = c22, -c22
+    t = t[:, : (lmax + 1) ** 2]
+    rows = tuple(int(i) for i in np.flatnonzero(np.any(t != 0.0, axis=1)))
+    return rows, t[list(rows)]
+
+
+def _basis_low(unit, lmax: int, coeffs_first: bool = False):
+    """Real SH of unit vectors `(N, 3)` at `lmax` <= 2: `(N, n_coeffs)`, or `(n_coeffs, N)` with `coeffs_first`.
+
+    One elementwise expression of the output's shape, $\\sum_j \\mu_j(u) \\otimes T_j$ (`_low_degree_table`), which
+    XLA computes in one pass that writes each element once: about twice as fast as stacking the nine harmonics
+    made as separate arrays (`bench_sh.py`, 10⁶ directions, lmax 2, two interleaved runs: float64 21-24 against
+    48-51 ms, float32 13 against 24-27 ms; docs/performance.md, "Thirteenth round")."""
+    rows, table = _low_degree_table(lmax)
+    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
+    mono = {"x": lambda: x, "y": lambda: y, "z": lambda: z, "xx": lambda: x * x, "yy": lambda: y * y,
+            "zz": lambda: z * z, "xy": lambda: x * y, "yz": lambda: y * z, "xz": lambda: x * z}
+    out = None
+    for r, row in zip(rows, table):
+        t = jnp.asarray(row[:, None] if coeffs_first else row[None, :], unit.dtype)
+        name = _MONOMIALS[r]
+        term = t if name == "1" else t * (mono[name]()[None, :] if coeffs_first else mono[name]()[:, None])
+        out = term if out is None else out + term
+    n = (lmax + 1) ** 2
+    return jnp.broadcast_to(out, (n, unit.shape[0]) if coeffs_first else (unit.shape[0], n))
 
 
 def _scan_parts(x, y, z, lmax: int):
@@ -335,10 +349,10 @@ def _real_sh_flat(unit, lmax: int, coeffs_first: bool = False):
 
     `_rows_chunk` over chunks of `_chunk_size` points in a `fori_loop` (the last chunk shifted back to end at
     N; its overlap is recomputed identically), each transposed to the points-first layout in cache. At
-    `lmax <= _UNROLLED_LMAX` the written-out recurrence (`_basis_unrolled`) instead.
+    `lmax <= _UNROLLED_LMAX` the written-out polynomials (`_basis_low`) instead.
     """
     if lmax <= _UNROLLED_LMAX:
-        return jnp.stack(_basis_unrolled(unit[:, 0], unit[:, 1], unit[:, 2], lmax), 0 if coeffs_first else 1)
+        return _basis_low(unit, lmax, coeffs_first)
     feat = _z_features(unit)
     n_pts = feat.shape[0]
     n = (lmax + 1) ** 2

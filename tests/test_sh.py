@@ -235,15 +235,59 @@ def test_no_retrace_for_new_values(rng):
         f(random_dirs(rng, (7,)))
 
 
+def _per_lm_recurrence(x, y, z, lmax: int):
+    """List of the (lmax+1)**2 real SH, in flat order, as arrays shaped like x: the recurrence of `jaxsh._sh`'s
+    module docstring written out per (l, m) in Python, a reference for the library's vectorized forms."""
+    from jaxsh import _sh
+
+    diag = _sh._diag_constants(lmax)
+    c = [jnp.ones_like(x)]
+    s = [jnp.zeros_like(x)]
+    for m in range(1, lmax + 1):
+        c.append(x * c[m - 1] - y * s[m - 1])
+        s.append(x * s[m - 1] + y * c[m - 1])
+    # q[m] holds (q_{l-1}^m, q_{l-2}^m) as the loop over l proceeds.
+    prev = {}
+    out = []
+    for l in range(lmax + 1):
+        row = {}
+        for m in range(l + 1):
+            if m == l:
+                q = float(diag[l] * (np.sqrt(2.0) if m > 0 else 1.0))
+            elif m == l - 1:
+                q = float(np.sqrt(2 * l + 1)) * z * prev[m][0]
+            else:
+                alm = float(np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m)))
+                blm = float(np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0)))
+                q = alm * (z * prev[m][0] - blm * prev[m][1])
+            row[m] = q
+        for m in range(l + 1):
+            prev[m] = (row[m], prev[m][0] if m in prev else None)
+        for m in range(-l, l + 1):
+            q = row[abs(m)]
+            if m == 0:
+                out.append(q * c[0] if isinstance(q, float) else q)  # l = 0: a constant
+            elif m > 0:
+                out.append(q * c[m])
+            else:
+                out.append(q * s[-m])
+    return out
+
+
 def test_scan_and_unrolled_paths_agree(rng):
     from jaxsh import _sh
 
     d = jnp.asarray(random_dirs(rng, (64, 3)).reshape(-1, 3))
-    a = jnp.stack(_sh._basis_unrolled(d[:, 0], d[:, 1], d[:, 2], 12), -1)
+    a = jnp.stack(_per_lm_recurrence(d[:, 0], d[:, 1], d[:, 2], 12), -1)
     b = _sh._basis_scan(d[:, 0], d[:, 1], d[:, 2], 12).T
     np.testing.assert_allclose(a, b, atol=1e-14)
     # the rolled kernel of `real_sh` (signed-layout windows) against the per-(l, m) Python recurrence
     np.testing.assert_allclose(_sh._real_sh_flat(d, 12), a, atol=1e-14)
+    # the closed-form polynomials of lmax <= 2 (`_basis_low`), both layouts
+    for lmax in (0, 1, 2):
+        n = (lmax + 1) ** 2
+        np.testing.assert_allclose(_sh._basis_low(d, lmax), a[:, :n], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(_sh._basis_low(d, lmax, coeffs_first=True), a[:, :n].T, rtol=0, atol=1e-15)
 
 
 @pytest.mark.parametrize("lmax", [0, 1, 2, 7, 16, 25])
@@ -268,7 +312,7 @@ def test_real_sh_chunks_and_layouts(rng, lmax, n):
 @pytest.mark.parametrize("lmax", [0, 1, 2, 3])
 @pytest.mark.parametrize("coeffs_first", [False, True])
 def test_real_sh_low_degrees_written_out(lmax, coeffs_first):
-    """At lmax <= 2 (every diffuse term's 9 harmonics) `real_sh` is the written-out recurrence, a program
+    """At lmax <= 2 (every diffuse term's 9 harmonics) `real_sh` is written out (closed-form polynomials), a program
     without loops (less to compile in every program that holds it); from lmax 3 the rolled kernel. The
     values are checked against scipy by the tests above, for both paths."""
     from jaxsh import _sh
@@ -336,8 +380,19 @@ def test_negative_lmax():
         jaxsh.complex_sh(np.ones(3), 2.5)
 
 
-def test_zero_or_nan_direction_raises():
+@pytest.mark.parametrize("bad", [[0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [np.inf, 0.0, 0.0], [0.0, 0.0, -np.inf],
+                                 "huge"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_zero_or_nonfinite_direction_raises(bad, dtype):
+    """Concrete input: a `ValueError` before anything runs, wherever the bad row is (one in 1,000; a "huge"
+    direction, 1e200 in float64 and 1e20 in float32, squares to inf); traced input: the kernel's run-time error."""
+    d = np.tile(np.array([0.3, -0.4, 0.5], dtype), (1000, 1))
+    d[617] = [1e200 if dtype == np.float64 else 1e20, 0.0, 0.0] if bad == "huge" else bad
+    with pytest.raises(ValueError, match="`dirs` contains a zero-length or non-finite direction"):
+        jaxsh.real_sh(d, 2)
+    with pytest.raises(ValueError, match="zero-length or non-finite"):
+        jaxsh.real_sh(d[617], 5)  # a single direction, the loop path
     with pytest.raises(Exception, match="zero-length or non-finite"):
-        jaxsh.real_sh(np.zeros((2, 3)), 2).block_until_ready()
-    with pytest.raises(Exception, match="zero-length or non-finite"):
-        jaxsh.real_sh(np.array([np.nan, 0, 1.0]), 2).block_until_ready()
+        jax.jit(lambda v: jaxsh.real_sh(v, 2))(d).block_until_ready()
+    d[617] = [1e-3, 0.0, 0.0]  # short but non-zero: fine
+    assert np.all(np.isfinite(np.asarray(jaxsh.real_sh(d, 2))))
