@@ -42,9 +42,11 @@ from ._indexing import sh_degrees, sh_orders
 # operation is vectorized over the chunk of `_CHUNK_POINTS` points (`_chunk_size`).
 _CHUNK_POINTS = 128
 # At lmax <= 2 (the irradiance's 9 harmonics, in every diffuse term) the harmonics are written out instead
-# (`_basis_low`: polynomials of degree <= 2 in one elementwise pass, no loop): measured at 154,000 points, 0.07-0.1 s
-# less XLA compilation and 0.02 s less tracing per program that holds it than the rolled loop, and it runs as fast
-# or faster. From lmax 3 the rolled loop compiles as fast and from 4 faster.
+# (`_basis_low`: polynomials of degree <= 2 in one elementwise pass, no loop). Measured at 154,000 points for the
+# written-out recurrence it replaced: 0.07-0.1 s less XLA compilation and 0.02 s less tracing per program that
+# holds it than the rolled loop; the closed form compiles as fast as that recurrence (the whole `real_sh` program
+# 0.07-0.11 s against 0.10-0.13 s) and runs about twice as fast. From lmax 3 the rolled loop compiles as fast as
+# a written-out form and from 4 faster.
 _UNROLLED_LMAX = 2
 
 
@@ -128,15 +130,15 @@ def _basis_low(unit, lmax: int, coeffs_first: bool = False):
     made as separate arrays (`bench_sh.py`, 10⁶ directions, lmax 2, two interleaved runs: float64 21-24 against
     48-51 ms, float32 13 against 24-27 ms; docs/performance.md, "Thirteenth round")."""
     rows, table = _low_degree_table(lmax)
-    x, y, z = unit[:, 0], unit[:, 1], unit[:, 2]
-    mono = {"x": lambda: x, "y": lambda: y, "z": lambda: z, "xx": lambda: x * x, "yy": lambda: y * y,
-            "zz": lambda: z * z, "xy": lambda: x * y, "yz": lambda: y * z, "xz": lambda: x * z}
+    axis = {"x": unit[:, 0], "y": unit[:, 1], "z": unit[:, 2]}
     out = None
     for r, row in zip(rows, table):
         t = jnp.asarray(row[:, None] if coeffs_first else row[None, :], unit.dtype)
         name = _MONOMIALS[r]
-        term = t if name == "1" else t * (mono[name]()[None, :] if coeffs_first else mono[name]()[:, None])
-        out = term if out is None else out + term
+        if name != "1":
+            m = axis[name[0]] if len(name) == 1 else axis[name[0]] * axis[name[1]]
+            t = t * (m[None, :] if coeffs_first else m[:, None])
+        out = t if out is None else out + t
     n = (lmax + 1) ** 2
     return jnp.broadcast_to(out, (n, unit.shape[0]) if coeffs_first else (unit.shape[0], n))
 
