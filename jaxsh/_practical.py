@@ -37,7 +37,7 @@ from ._checks import check_dirs, check_positive_int
 from ._indexing import sh_degrees
 from ._model import Lighting, TorranceSparrow
 from ._reflectance import _fresnel_normalized_jit, _safe_sqrt, _theta_h_sq, fresnel_normalized
-from ._sh import _band_sums_scan, _real_sh_flat, _unit_vectors, _z_features
+from ._sh import _band_sums_scan, _real_sh_flat, _sh2, _unit_vectors, _z_features
 from ._spectra import _microfacet_filter, lambertian_spectrum, microfacet_spectrum
 from ._transforms import _synthesize
 
@@ -278,15 +278,6 @@ def _table_lookup(table, rows: int, r):
 
 # --------------------------------------------------------------------------- per-pixel kernels, component-wise
 # (XLA on CPU vectorizes (N,) columns far better than (N, 3) rows with a minor axis of 3.)
-
-
-def _sh2(x, y, z, k: int):
-    """The first `k` (1, 4 or 9) real SH at unit components `x, y, z`, in closed form (docs/conventions.md)."""
-    c0, c1, c2 = 0.28209479177387814, 0.4886025119029199, 1.0925484305920792
-    c3, c4 = 0.31539156525252005, 0.5462742152960396
-    ys = [jnp.full_like(x, c0), c1 * y, c1 * z, c1 * x, c2 * x * y, c2 * y * z, c3 * (3.0 * z * z - 1.0), c2 * x * z,
-          c4 * (x * x - y * y)]
-    return ys[:k]
 
 
 def _sh2_dot(n, coeffs):

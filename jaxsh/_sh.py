@@ -92,55 +92,36 @@ def _unit_vectors(dirs, name: str = "dirs", check: bool = True):
     return dirs * jax.lax.rsqrt(norm2)
 
 
-# Monomials of `_basis_low`, in the order of the rows of `_low_degree_table`.
-_MONOMIALS = ("1", "x", "y", "z", "xx", "yy", "zz", "xy", "yz", "xz")
-
-
-@functools.lru_cache(maxsize=None)
-def _low_degree_table(lmax: int) -> tuple[tuple[int, ...], np.ndarray]:
-    """The real SH up to `lmax` <= 2 as polynomials of the unit vector: $Y_k = \\sum_j T_{jk}\\,\\mu_j$.
+def _sh2(x, y, z, k: int):
+    """The first `k` (1, 4 or 9) real SH at unit components `x, y, z`, in closed form: a list of arrays shaped like x.
 
     The recurrence of the module docstring written out at l <= 2, with $\\bar q_0^0 = 1/\\sqrt{4\\pi}$:
     $Y_{00} = \\tfrac12\\sqrt{1/\\pi}$; $(Y_{1,-1}, Y_{10}, Y_{11}) = \\sqrt{3/4\\pi}\\,(y, z, x)$;
     $(Y_{2,-2}, Y_{2,-1}, Y_{21}) = \\tfrac12\\sqrt{15/\\pi}\\,(xy, yz, xz)$;
     $Y_{20} = \\tfrac14\\sqrt{5/\\pi}\\,(3z^2 - 1)$; $Y_{22} = \\tfrac14\\sqrt{15/\\pi}\\,(x^2 - y^2)$ (the constants
     0.282095, 0.488603, 1.092548, 0.315392, 0.546274 of Ramamoorthi & Hanrahan's irradiance maps, SIGGRAPH
-    2001, eq. 3). Returns the indices into `_MONOMIALS` of the monomials that appear and their rows of T,
-    float64 `(n_monomials, (lmax+1)**2)`.
-    """
-    c0, c1 = 0.5 / np.sqrt(np.pi), np.sqrt(3.0 / (4.0 * np.pi))
-    c2, c20, c22 = 0.5 * np.sqrt(15.0 / np.pi), 0.25 * np.sqrt(5.0 / np.pi), 0.25 * np.sqrt(15.0 / np.pi)
-    j = {m: i for i, m in enumerate(_MONOMIALS)}
-    t = np.zeros((len(_MONOMIALS), 9))
-    t[j["1"], 0] = c0
-    t[j["y"], 1], t[j["z"], 2], t[j["x"], 3] = c1, c1, c1
-    t[j["xy"], 4], t[j["yz"], 5], t[j["xz"], 7] = c2, c2, c2
-    t[j["zz"], 6], t[j["1"], 6] = 3.0 * c20, -c20
-    t[j["xx"], 8], t[j["yy"], 8] = c22, -c22
-    t = t[:, : (lmax + 1) ** 2]
-    rows = tuple(int(i) for i in np.flatnonzero(np.any(t != 0.0, axis=1)))
-    return rows, t[list(rows)]
+    2001, eq. 3)."""
+    c0, c1, c2 = 0.28209479177387814, 0.4886025119029199, 1.0925484305920792
+    c3, c4 = 0.31539156525252005, 0.5462742152960396
+    ys = [jnp.full_like(x, c0), c1 * y, c1 * z, c1 * x, c2 * x * y, c2 * y * z, c3 * (3.0 * z * z - 1.0), c2 * x * z,
+          c4 * (x * x - y * y)]
+    return ys[:k]
 
 
 def _basis_low(unit, lmax: int, coeffs_first: bool = False):
     """Real SH of unit vectors `(N, 3)` at `lmax` <= 2: `(N, n_coeffs)`, or `(n_coeffs, N)` with `coeffs_first`.
 
-    One elementwise expression of the output's shape, $\\sum_j \\mu_j(u) \\otimes T_j$ (`_low_degree_table`), which
-    XLA computes in one pass that writes each element once: about twice as fast as stacking the nine harmonics
-    made as separate arrays (`bench_sh.py`, 10⁶ directions, lmax 2, two interleaved runs: float64 21-24 against
-    48-51 ms, float32 13 against 24-27 ms; docs/performance.md, "Thirteenth round")."""
-    rows, table = _low_degree_table(lmax)
-    axis = {"x": unit[:, 0], "y": unit[:, 1], "z": unit[:, 2]}
-    out = None
-    for r, row in zip(rows, table):
-        t = jnp.asarray(row[:, None] if coeffs_first else row[None, :], unit.dtype)
-        name = _MONOMIALS[r]
-        if name != "1":
-            m = axis[name[0]] if len(name) == 1 else axis[name[0]] * axis[name[1]]
-            t = t * (m[None, :] if coeffs_first else m[:, None])
-        out = t if out is None else out + t
+    One elementwise expression of the output's shape, $\\sum_k Y_k(u) \\otimes e_k$ (`_sh2`'s columns times the unit
+    rows), which XLA computes in one pass that writes each element once: about twice as fast as stacking the nine
+    harmonics made as separate arrays (`bench_sh.py`, 10⁶ directions, lmax 2, two interleaved runs: float64 21-24
+    against 48-51 ms, float32 13 against 24-27 ms; docs/performance.md, "Thirteenth round")."""
     n = (lmax + 1) ** 2
-    return jnp.broadcast_to(out, (n, unit.shape[0]) if coeffs_first else (unit.shape[0], n))
+    out = None
+    for col, e in zip(_sh2(unit[:, 0], unit[:, 1], unit[:, 2], n), np.eye(n)):
+        e = jnp.asarray(e, unit.dtype)
+        t = e[:, None] * col[None, :] if coeffs_first else col[:, None] * e[None, :]
+        out = t if out is None else out + t
+    return out
 
 
 def _scan_parts(x, y, z, lmax: int):
