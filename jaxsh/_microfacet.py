@@ -133,19 +133,26 @@ def _smith_g1_ggx(tan2, alpha):
     return 2.0 / (1.0 + jnp.sqrt(1.0 + alpha * alpha * tan2))
 
 
-def _microfacet(wi, wo, n, kd, ks, mu, sigma, dist):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
-    h = _half(wi, wo)
-    tan2h, ch = _tan2_theta_h(h, n)
-    ti, to = _tan2(wi, n), _tan2(wo, n)
+def _microfacet_specular(tan2h, ch, ti, to, cd, ci, co, mu, sigma, dist):
+    """$F\\,D\\,G/(4\\cos\\theta_i\\cos\\theta_o)$ of the models here from their geometry: $\\tan^2\\theta_h$,
+    $\\cos\\theta_h$, $\\tan^2\\theta_i$, $\\tan^2\\theta_o$, $\\cos\\theta_d = \\omega_i\\cdot h$ and the two cosines
+    (all of a pair above both horizons). Written once, for `cook_torrance_smith`, `ggx` and the reference
+    renderer's pairwise form (`_reference_pairs.py`)."""
     if dist == "beckmann":
         d = _beckmann_d(tan2h, ch, sigma)
         g = _smith_g1_beckmann(ti, sigma) * _smith_g1_beckmann(to, sigma)
     else:
         d = _ggx_d(tan2h, ch, sigma)
         g = _smith_g1_ggx(ti, sigma) * _smith_g1_ggx(to, sigma)
-    f = 1.0 if mu is None else _fresnel_normalized(_dot(wi, h), mu)
-    val = kd + ks * f * d * g / (4.0 * ci * co)
+    f = 1.0 if mu is None else _fresnel_normalized(cd, mu)
+    return f * d * g / (4.0 * ci * co)
+
+
+def _microfacet(wi, wo, n, kd, ks, mu, sigma, dist):
+    valid, wi, wo, ci, co = _above(wi, wo, n)
+    h = _half(wi, wo)
+    tan2h, ch = _tan2_theta_h(h, n)
+    val = kd + ks * _microfacet_specular(tan2h, ch, _tan2(wi, n), _tan2(wo, n), _dot(wi, h), ci, co, mu, sigma, dist)
     return jnp.where(valid, val, 0.0)
 
 

@@ -828,13 +828,20 @@ def torrance_sparrow(
     return _torrance_sparrow(wi, wo, n, p["kd"], p["ks"], p.get("mu"), p["sigma"])
 
 
+def _ts_specular(theta_h_sq, ci, co, f, sigma):
+    """$F\\,S/(4\\cos\\theta_i\\cos\\theta_o)$ of `torrance_sparrow` from its geometry: $\\theta_h^2$, the two
+    cosines (positive) and the Fresnel factor `f` (`_fresnel_normalized(co, mu)`, or 1). Written once, for
+    `torrance_sparrow` and the reference renderer's pairwise form (`_reference_pairs.py`)."""
+    s = jnp.exp(-theta_h_sq / (sigma * sigma)) / (_PI * sigma * sigma)
+    return f * s / (4.0 * ci * co)
+
+
 @jit
 def _torrance_sparrow(wi, wo, n, kd, ks, mu, sigma):
     valid, wi, wo, ci, co = _above(wi, wo, n)
     theta_h_sq = _theta_h_sq(*_half_angle_parts(wi + wo, n))
-    s = jnp.exp(-theta_h_sq / (sigma * sigma)) / (_PI * sigma * sigma)
     f = 1.0 if mu is None else _fresnel_normalized(co, mu)
-    val = kd + ks * f * s / (4.0 * ci * co)
+    val = kd + ks * _ts_specular(theta_h_sq, ci, co, f, sigma)
     return jnp.where(valid, val, 0.0)
 
 

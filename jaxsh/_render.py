@@ -54,10 +54,8 @@ from ._practical import (
     _table_rows,
     practical_lighting,
 )
-from ._microfacet import cook_torrance_smith, ggx
-from ._reflectance import tangent_frame, torrance_sparrow
-
-_REFERENCE_BRDFS = {"torrance_sparrow": torrance_sparrow, "cook_torrance": cook_torrance_smith, "ggx": ggx}
+from ._reference_pairs import PAIR_MODELS as _REFERENCE_BRDFS, specular_pairs
+from ._reflectance import tangent_frame
 
 
 def _channels(x, name):
@@ -357,7 +355,7 @@ def render_reference(
     disk_nodes: tuple[int, int] = (48, 96),
     mesh=None,
     points: Real[ArrayLike, "*#batch 3"] | None = None,
-    chunk: int = 4096,
+    chunk: int | None = None,
     brdf_model: str = "torrance_sparrow",
     **legacy_kw,
 ) -> Float[Array, "*batch C"]:
@@ -369,8 +367,11 @@ def render_reference(
     disk source (`disk_nodes` = (n_θ, n_φ) per disk; resolve the lobe: the
     nodes should be finer than σ), and texel by texel over a lat-long
     environment map (exact Fejér weights; accurate only where the lobe is
-    wider than a texel). Slow, memory-bounded (pixels in chunks), no SH
-    anywhere: the ground truth the practical model is checked against.
+    wider than a texel). Memory-bounded (pixels in chunks), no SH
+    anywhere: the ground truth the practical model is checked against. The
+    BRDF is evaluated over all (pixel, direction) pairs from per-pair scalars
+    (`jaxsh._reference_pairs`), with the models' own formulas: equal to
+    `torrance_sparrow` / `cook_torrance_smith` / `ggx` of each pair to rounding.
 
     `render_reference(normals, views, brdf, lighting, envmap=..., ...)`, or
     in the keyword form `render_reference(normals, views, kd, ks, mu, sigma,
@@ -389,6 +390,9 @@ def render_reference(
       `points` `(..., 3)`: every quadrature direction of every pixel is then
       ray-cast (`directional_visibility`; NumPy/embree, N × M rays) and the
       integrand multiplied by its visibility (R&H sec. 6.4 shadowing, exactly).
+    - `chunk` (static): pixels per step of the loop over pixels; each step holds a few
+      `(chunk, M)` arrays for the `M` directions (quadrature nodes, texels, sources). Default:
+      $\\max(16, \\min(4096, 2^{19}/M))$ (about 4 MB per array; docs/performance.md, "Fourteenth round").
     - `brdf_model` (static): the BRDF of the integrand, in the parameters of
       `brdf`: `"torrance_sparrow"` (default, the practical model's BRDF),
       `"cook_torrance"` (`jaxsh.cook_torrance_smith`: Beckmann, Smith $G$,
@@ -468,34 +472,34 @@ def render_reference(
         pts = jnp.broadcast_to(jnp.asarray(points, dt), batch + (3,)).reshape(-1, 3)
         vis = jnp.asarray(directional_visibility(mesh, np.asarray(pts), np.asarray(n), np.asarray(sd)), dt)
     sigma, mu = _check_sigma_traced(jnp.asarray(sigma, dt), None if mu is None else jnp.asarray(mu, dt))
-    chunk = check_positive_int(chunk, "chunk")
-    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, _REFERENCE_BRDFS[brdf_model])
+    chunk = _reference_chunk(sd.shape[0]) if chunk is None else check_positive_int(chunk, "chunk")
+    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, brdf_model)
     return out.reshape(batch + (c,))
 
 
+def _reference_chunk(m: int) -> int:
+    """`render_reference`'s default pixels per loop step for `m` directions: `(chunk, m)` arrays of ~2^19 elements."""
+    return max(16, min(4096, (1 << 19) // m))
+
+
 @jit
-def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, rho=torrance_sparrow):
+def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, model="torrance_sparrow"):
     npx = n.shape[0]
     pad = (-npx) % chunk if npx > chunk else 0
     size = chunk if npx > chunk else npx
 
     def one_chunk(args):
         nn, vv, kkd, kks, vv_is = args
-        wi = jnp.broadcast_to(sd[None], (nn.shape[0],) + sd.shape)
-        wo = jnp.broadcast_to(vv[:, None, :], wi.shape)
-        nb = jnp.broadcast_to(nn[:, None, :], wi.shape)
-        spec = rho(wi, wo, nb, 0.0, 1.0, mu, sigma)  # F S / (4 cos cos) (or F D G / ...), 0 below horizons
-        cos_i = jnp.maximum(jnp.sum(wi * nb, -1), 0.0) * vv_is
-        cos_o = jnp.sum(nn * vv, -1)
-        diff = jnp.where((cos_o > 0)[:, None], cos_i, 0.0) @ sl  # (n, C)
+        # rho_s at K_s = 1 for every (pixel, direction) pair: F S / (4 cos cos) (or F D G / ...), 0 below horizons
+        spec, ci, cos_o = specular_pairs(nn, vv, sd, mu, sigma, model)
+        cos_i = jnp.maximum(ci, 0.0) if vv_is is None else jnp.maximum(ci, 0.0) * vv_is
+        diff = jnp.where(cos_o > 0, cos_i, 0.0) @ sl  # (n, C)
         spc = (spec * cos_i) @ sl
         return kkd * diff + kks * spc
 
-    if vis is None:
-        vis = jnp.ones((npx, sd.shape[0]), n.dtype)
-    arrs = [jnp.pad(a, ((0, pad), (0, 0))) for a in (n, v, kd, ks, vis)]
+    arrs = [None if a is None else jnp.pad(a, ((0, pad), (0, 0))) for a in (n, v, kd, ks, vis)]
     if pad == 0 and npx <= chunk:
         return one_chunk(arrs)
     nch = arrs[0].shape[0] // size
-    res = jax.lax.map(one_chunk, tuple(a.reshape(nch, size, -1) for a in arrs))
+    res = jax.lax.map(one_chunk, tuple(None if a is None else a.reshape(nch, size, -1) for a in arrs))
     return res.reshape(-1, res.shape[-1])[:npx]
