@@ -39,18 +39,18 @@ class _Pairs:
         nk = [n[:, k : k + 1] for k in range(3)]
         self.ci = n @ sdt  # (P, M)
         co = jnp.sum(n * v, -1)[:, None]  # (P, 1)
+        self.cos_o = co
         self.pixel_ok = co > 0.0
         self.valid = (self.ci > 0.0) & self.pixel_ok
-        self.co = jnp.where(self.pixel_ok, co, 1.0)
+        self.co = jnp.where(self.pixel_ok, co, 1.0)  # substituted: 1 where the pixel is seen from behind
         # w x n, by components (P, M)
         self.wxn = (w[1] * nk[2] - w[2] * nk[1], w[2] * nk[0] - w[0] * nk[2], w[0] * nk[1] - w[1] * nk[0])
-        vxn = jnp.cross(v, n)  # (P, 3)
-        self.vxn = vxn
-        x = [self.wxn[k] + vxn[:, k : k + 1] for k in range(3)]  # (w + v) x n
+        self.vxn = jnp.cross(v, n)  # (P, 3)
+        x = [self.wxn[k] + self.vxn[:, k : k + 1] for k in range(3)]  # (w + v) x n
         self.s2 = jnp.where(self.valid, x[0] * x[0] + x[1] * x[1] + x[2] * x[2], 0.0)
         self.c = jnp.where(self.valid, self.ci + co, 2.0)  # (w + v) . n
         self.ci_s = jnp.where(self.valid, self.ci, 1.0)
-        self.n, self.v, self.sd = n, v, sd
+        self.v, self.sd = v, sd
 
 
 def _ts_pairs(p: _Pairs, mu, sigma):
@@ -88,4 +88,4 @@ def specular_pairs(n, v, sd, mu, sigma, model: str):
     """$\\rho_s(\\omega_j, \\omega_o, n)$ (the specular part at $K_s = 1$) for every pixel of `n`, `v` `(P, 3)` and
     direction of `sd` `(M, 3)`: `(P, M)`, and $\\cos\\theta_i$ `(P, M)`, $\\cos\\theta_o$ `(P, 1)`."""
     p = _Pairs(n, v, sd)
-    return PAIR_MODELS[model](p, mu, sigma), p.ci, jnp.sum(n * v, -1)[:, None]
+    return PAIR_MODELS[model](p, mu, sigma), p.ci, p.cos_o
