@@ -36,7 +36,7 @@ from ._custom_types import SequenceLike
 from ._checks import check_dirs, check_positive_int
 from ._indexing import sh_degrees
 from ._model import Lighting, TorranceSparrow
-from ._reflectance import _fresnel_normalized_jit, _safe_sqrt, _theta_h_sq, fresnel_normalized
+from ._reflectance import _fresnel_normalized_jit, _half_angle_pairs, _safe_sqrt, _theta_h_sq, fresnel_normalized
 from ._sh import _band_sums_scan, _real_sh_flat, _sh2, _unit_vectors, _z_features
 from ._spectra import _microfacet_filter, lambertian_spectrum, microfacet_spectrum
 from ._transforms import _synthesize
@@ -291,14 +291,7 @@ def _sh2_dot(n, coeffs):
 
 def _half_angles(d, v, n):
     """θh `(N, J)` of unit sources `d` `(J, 3)` at unit views / normals `(N, 3)` (`jaxsh.half_angle`'s formula)."""
-    hx = d[None, :, 0] + v[:, 0:1]
-    hy = d[None, :, 1] + v[:, 1:2]
-    hz = d[None, :, 2] + v[:, 2:3]
-    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
-    cx = hy * nz - hz * ny
-    cy = hz * nx - hx * nz
-    cz = hx * ny - hy * nx
-    return _safe_sqrt(_theta_h_sq(cx * cx + cy * cy + cz * cz, hx * nx + hy * ny + hz * nz))
+    return _safe_sqrt(_theta_h_sq(*_half_angle_pairs(d, n, v)))
 
 
 def _eq24_terms(

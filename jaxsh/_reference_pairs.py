@@ -8,10 +8,11 @@ factor once per pair, on arrays whose minor axis has 3 elements: 1.29 s for 2,62
 (docs/performance.md, "Fourteenth round"). Here the geometry is formed from the components instead:
 
 - per pair, by products and outer sums of `(P, 1)` and `(1, M)` operands:
-  $\\cos\\theta_i = n\\cdot\\omega_i$ (one matrix product), the components of
-  $(\\omega_i + \\omega_o)\\times n = \\omega_i\\times n + \\omega_o\\times n$ and $\\omega_i\\cdot\\omega_o$;
-- per pixel: $\\cos\\theta_o$, $\\omega_o\\times n$, $\\tan^2\\theta_o$ and, for `torrance_sparrow`,
-  the Fresnel factor $F(\\mu, \\theta_o)$.
+  $\\cos\\theta_i = n\\cdot\\omega_i$ (one matrix product), $|h\\times n|^2$ and $h\\cdot n$ for
+  $h = \\omega_i + \\omega_o$ (`_half_angle_pairs`, shared with the practical model's fast sources), and
+  for the microfacet models $|\\omega_i\\times n|^2$ and $\\omega_i\\cdot\\omega_o$;
+- per pixel: $\\cos\\theta_o$, $\\tan^2\\theta_o$ and, for `torrance_sparrow`, the Fresnel factor
+  $F(\\mu, \\theta_o)$.
 
 The model formulas are the models' own (`_ts_specular`, `_microfacet_specular`, `_theta_h_sq`),
 evaluated on these scalars, so the pairwise form equals the public BRDF functions to rounding (tested
@@ -26,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from ._microfacet import _microfacet_specular
-from ._reflectance import _fresnel_normalized, _theta_h_sq, _ts_specular
+from ._reflectance import _fresnel_normalized, _half_angle_pairs, _half_angle_parts, _theta_h_sq, _ts_specular
 
 
 class _Pairs:
@@ -34,23 +35,17 @@ class _Pairs:
     `sd` `(M, 3)` (plain container, built and used inside one trace)."""
 
     def __init__(self, n, v, sd):
-        sdt = sd.T  # (3, M)
-        w = [sdt[k][None, :] for k in range(3)]
-        nk = [n[:, k : k + 1] for k in range(3)]
-        self.ci = n @ sdt  # (P, M)
+        self.ci = n @ sd.T  # (P, M)
         co = jnp.sum(n * v, -1)[:, None]  # (P, 1)
         self.cos_o = co
         self.pixel_ok = co > 0.0
         self.valid = (self.ci > 0.0) & self.pixel_ok
         self.co = jnp.where(self.pixel_ok, co, 1.0)  # substituted: 1 where the pixel is seen from behind
-        # w x n, by components (P, M)
-        self.wxn = (w[1] * nk[2] - w[2] * nk[1], w[2] * nk[0] - w[0] * nk[2], w[0] * nk[1] - w[1] * nk[0])
-        self.vxn = jnp.cross(v, n)  # (P, 3)
-        x = [self.wxn[k] + self.vxn[:, k : k + 1] for k in range(3)]  # (w + v) x n
-        self.s2 = jnp.where(self.valid, x[0] * x[0] + x[1] * x[1] + x[2] * x[2], 0.0)
-        self.c = jnp.where(self.valid, self.ci + co, 2.0)  # (w + v) . n
+        s2, c = _half_angle_pairs(sd, n, v)  # |(w + v) x n|^2, (w + v) . n
+        self.s2 = jnp.where(self.valid, s2, 0.0)
+        self.c = jnp.where(self.valid, c, 2.0)
         self.ci_s = jnp.where(self.valid, self.ci, 1.0)
-        self.v, self.sd = v, sd
+        self.n, self.v, self.sd = n, v, sd
 
 
 def _ts_pairs(p: _Pairs, mu, sigma):
@@ -69,9 +64,8 @@ def _microfacet_pairs(p: _Pairs, mu, sigma, dist: str):
     rs = jax.lax.rsqrt(hh)
     tan2h = p.s2 / (p.c * p.c)
     ch = p.c * rs
-    wxn2 = p.wxn[0] ** 2 + p.wxn[1] ** 2 + p.wxn[2] ** 2
-    ti = jnp.where(p.valid, wxn2, 0.0) / (p.ci_s * p.ci_s)
-    to = jnp.where(p.pixel_ok, jnp.sum(p.vxn * p.vxn, -1)[:, None], 0.0) / (p.co * p.co)
+    ti = jnp.where(p.valid, _half_angle_pairs(p.sd, p.n)[0], 0.0) / (p.ci_s * p.ci_s)  # |w x n|^2 / cos^2
+    to = jnp.where(p.pixel_ok, _half_angle_parts(p.v, p.n)[0][:, None], 0.0) / (p.co * p.co)
     cd = jnp.where(p.valid, (sdn + wv) * rs, 1.0)  # w . h
     val = _microfacet_specular(tan2h, ch, ti, to, cd, p.ci_s, p.co, mu, sigma, dist)
     return jnp.where(p.valid, val, 0.0)

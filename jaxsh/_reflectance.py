@@ -343,6 +343,18 @@ def _half_angle_parts(h, n):
     return _dot(x, x), _dot(h, n)
 
 
+def _half_angle_pairs(d, n, v=None):
+    """`_half_angle_parts` of every pair of a direction `d` `(J, 3)` and a pixel (normal `n`, view `v` `(N, 3)`):
+    $(|h\\times n|^2,\\ h\\cdot n)$ `(N, J)` with $h = d_j + v_i$ ($h = d_j$ with `v=None`), by components, with no
+    `(N, J, 3)` array (the fast sources of the practical model, the reference renderer's pairs)."""
+    h = [d[None, :, k] if v is None else d[None, :, k] + v[:, k : k + 1] for k in range(3)]
+    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
+    cx = h[1] * nz - h[2] * ny
+    cy = h[2] * nx - h[0] * nz
+    cz = h[0] * ny - h[1] * nx
+    return cx * cx + cy * cy + cz * cz, h[0] * nx + h[1] * ny + h[2] * nz
+
+
 def _theta_h_sq(s2, c):
     """$\\theta_h^2 = \\operatorname{atan2}(\\sqrt{s_2}, c)^2$, smooth and gradient-safe everywhere.
 
