@@ -761,9 +761,21 @@ def _flat(a, shape, k):
     return jnp.broadcast_to(jnp.asarray(a), shape + (k,)).reshape(-1, k)
 
 
+def _host_or_jax(x):
+    """`x` itself when it is a JAX array (or tracer), else a NumPy array: an argument for a jitted program."""
+    return x if isinstance(x, jax.Array) else np.asarray(x)
+
+
 def _render_geometry(normal, view, light, mask):
+    """`(shape, normal, view, light, cos_i, ok)` of a render: one compiled program per shape and dtype."""
+    normal = _host_or_jax(normal)
+    return (normal.shape[:-1],) + _render_geometry_jit(
+        normal, _host_or_jax(view), _host_or_jax(light), None if mask is None else _host_or_jax(mask))
+
+
+@jaxsh.jit
+def _render_geometry_jit(normal, view, light, mask):
     normal = jnp.asarray(normal)
-    shape = normal.shape[:-1]
     view = jnp.broadcast_to(jnp.asarray(view, normal.dtype), normal.shape)
     light = jnp.broadcast_to(jnp.asarray(light, normal.dtype), normal.shape)
     # a light direction is a direction: normalised, as in `reflectance_samples` (zero rows stay zero: not lit)
@@ -778,41 +790,58 @@ def _render_geometry(normal, view, light, mask):
     nsafe = jnp.where(ok[..., None], normal, jnp.asarray([0.0, 0.0, 1.0], normal.dtype))
     lsafe = jnp.where(ok[..., None], light, jnp.asarray([0.6, 0.0, 0.8], normal.dtype))
     vsafe = jnp.where(ok[..., None], view, jnp.asarray([0.0, 0.0, 1.0], normal.dtype))
-    return shape, nsafe, vsafe, lsafe, jnp.where(ok, cos_i, 0.0), ok
+    return nsafe, vsafe, lsafe, jnp.where(ok, cos_i, 0.0), ok
+
+
+# the fewest rows a render evaluates (`_rendered_rows`): 4,096 rows of an RBF with K centres cost about
+# K·4096 distances (10-30 ms at K = 2,000-5,000 on 2 cores), less than compiling one more program (0.2-0.3 s)
+_MIN_ROWS = 4096
 
 
 def _rendered_rows(ok):
-    """Flat indices of the rendered pixels, padded to a power of two (few distinct shapes to compile), and their count.
+    """Flat indices of the rendered pixels, padded, or `None` when `ok` is traced.
 
-    `None` when `ok` is traced: then every pixel is evaluated.
+    The padding indices are `ok.size` (one past the last pixel): the evaluation reads pixel
+    `ok.size - 1` there (substitute geometry when it is not rendered) and the scatter drops them.
+    The padded count is the next power of two, at least `_MIN_ROWS`, at most `ok.size`, so the
+    compiled programs are few: a render under a new light or view reuses the program of an earlier
+    one whenever its count of rendered pixels falls in the same bucket (then it compiles nothing),
+    and every render of an image of at most `_MIN_ROWS` pixels shares one program per model size.
     """
     c = _concrete(ok)
     if c is None:
         return None
     idx = np.flatnonzero(c.reshape(-1))
     m = idx.size
-    size = max(1, min(c.size, 1 << max(m - 1, 0).bit_length()))
-    sel = np.zeros(size, dtype=np.int32)  # padding rows: pixel 0 (substitute geometry), discarded below
+    size = max(1, min(c.size, max(_MIN_ROWS, 1 << max(m - 1, 0).bit_length())))
+    sel = np.full(size, c.size, dtype=np.int32)
     sel[:m] = idx
-    return jnp.asarray(sel), m
+    return sel
 
 
-def _eval_rendered(fn, ok, *rows):
-    """`fn(*rows)` at the rendered pixels only (gather, evaluate, scatter), zero at the others.
+def _eval_rendered(fn, args, ok, *rows):
+    """`fn(args, *rows)` at the rendered pixels only (gather, evaluate, scatter), zero at the others.
 
-    `rows` are flat `(P, k)` arrays (or `None`); `fn` returns an array or a
-    tuple of arrays with `P` leading rows. Same values as evaluating every
-    pixel and masking, at the cost of the rendered pixels only (Zickler
-    sec. 8.2 renders objects that cover part of the frame).
+    `fn` is a module-level function (a static argument of the compiled program: a closure made
+    per call would compile anew each call); `args` its pytree of models; `rows` are flat `(P, k)`
+    arrays (or `None`); `fn` returns an array or a tuple of arrays with `P` leading rows. Same
+    values as evaluating every pixel and masking, at the cost of the rendered pixels only
+    (Zickler sec. 8.2 renders objects that cover part of the frame). Concrete `ok`: one compiled
+    program per (shape, padded count; `_rendered_rows`); traced `ok`: every pixel is evaluated.
     """
-    found = _rendered_rows(ok)
-    if found is None:
-        return fn(*rows)
-    sel, m = found
+    sel = _rendered_rows(ok)
+    if sel is None:
+        return fn(args, *rows)
+    return _eval_rows_jit(fn, args, sel, *rows)
+
+
+@jaxsh.jit
+def _eval_rows_jit(fn, args, sel, *rows):
     total = rows[0].shape[0]
-    vals = fn(*(None if r is None else r[sel] for r in rows))
-    keep = sel[:m]
-    return jax.tree.map(lambda v: jnp.zeros((total,) + v.shape[1:], v.dtype).at[keep].set(v[:m]), vals)
+    take = jnp.minimum(sel, total - 1)
+    vals = fn(args, *(None if r is None else r[take] for r in rows))
+    return jax.tree.map(
+        lambda v: jnp.zeros((total,) + v.shape[1:], v.dtype).at[sel].set(v, mode="drop", indices_are_sorted=True), vals)
 
 
 def _combined(fits):
@@ -882,6 +911,12 @@ def _rbf_brdf(model, spatial, wi, wo, n, xy):
     return out.reshape(shape + out.shape[1:])
 
 
+def _rbf_rows(args, wi, wo, n, xy):
+    """$\\max(\\tilde f, 0)$ of `render_rbf` at flat rows (`_eval_rendered`'s `fn`); `args` = (model, spatial)."""
+    model, spatial = args
+    return jnp.maximum(_rbf_brdf(model, spatial, wi, wo, n, xy), 0.0)
+
+
 def render_rbf(model: jaxsh.RBFModel, normal, view, light, irradiance=1.0, mask=None, xy=None):
     """An image under one directional light from an RBF (S)BRDF model (Zickler 2006 sec. 8.2).
 
@@ -902,8 +937,7 @@ def render_rbf(model: jaxsh.RBFModel, normal, view, light, irradiance=1.0, mask=
         raise ValueError("this SBRDF (eq. 13) needs surface coordinates `xy` (..., 2)")
     shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
     xyf = _flat(xy, shape, 2) if spatial else None
-    f = _eval_rendered(lambda a, b, c, q: jnp.maximum(_rbf_brdf(model, spatial, a, b, c, q), 0.0), ok,
-                       _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), xyf)
+    f = _eval_rendered(_rbf_rows, (model, spatial), ok, _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), xyf)
     f = f.reshape(shape + f.shape[1:])
     e = jnp.asarray(irradiance, f.dtype)
     scale = jnp.where(ok, cos, 0.0)
@@ -976,6 +1010,17 @@ def _fill(amap):
     return np.where(np.isnan(amap), med[None, None, :], amap)
 
 
+def _dichromatic_rows(fits, wi, wo, n, xy):
+    """$(\\max(d_k, 0), \\max(g, 0))$ of eq. 14 at flat rows (`_eval_rendered`'s `fn`); `fits` = (diffuse, specular)."""
+    q = jaxsh.sbrdf_points(wi, wo, n, xy)
+    return jnp.maximum(fits[0](q), 0.0), jnp.maximum(fits[1](q), 0.0)
+
+
+def _one_image_rows(specular, wi, wo, n, xy):
+    """$\\max(g, 0)$ of eq. 15 at flat rows (`_eval_rendered`'s `fn`), $g$ over $(x, y, u, v)$."""
+    return jnp.maximum(specular(jaxsh.sbrdf_points(wi, wo, n, xy)[:, :4]), 0.0)
+
+
 class DichromaticReflectance(Solution):
     """Zickler 2006 eq. 14: $I_k = s_k\\,(a_k(\\vec x)\\,d_k(\\vec q) + g(\\vec q))\\,E\\cos\\theta_i$.
 
@@ -1013,12 +1058,8 @@ class DichromaticReflectance(Solution):
     def render(self, normal, view, light, xy, color=(1.0, 1.0, 1.0), irradiance=1.0, mask=None):
         """Predicted radiance `(H, W, 3)` under a directional light of RGB unit colour `color`."""
         shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
-
-        def parts(a, b, c, p):
-            q = jaxsh.sbrdf_points(a, b, c, p)
-            return jnp.maximum(self.diffuse(q), 0.0), jnp.maximum(self.specular(q), 0.0)
-
-        d, g = _eval_rendered(parts, ok, _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
+        d, g = _eval_rendered(_dichromatic_rows, (self.diffuse, self.specular), ok, _flat(li, shape, 3), _flat(v, shape, 3),
+                              _flat(n, shape, 3), _flat(xy, shape, 2))
         d, g = d.reshape(shape + (3,)), g.reshape(shape)
         a = _lookup(self.albedo, jnp.asarray(xy))
         s = jnp.asarray(color, d.dtype).reshape((1,) * len(shape) + (3,))
@@ -1119,11 +1160,8 @@ class OneImageReflectance(Solution):
     def render(self, normal, view, light, xy, color=(1.0, 1.0, 1.0), irradiance=1.0, mask=None):
         """Predicted radiance `(H, W, 3)` under a new directional light / view."""
         shape, n, v, li, cos, ok = _render_geometry(normal, view, light, mask)
-
-        def spec(a, b, c, p):
-            return jnp.maximum(self.specular(jaxsh.sbrdf_points(a, b, c, p)[:, :4]), 0.0)
-
-        g = _eval_rendered(spec, ok, _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3), _flat(xy, shape, 2))
+        g = _eval_rendered(_one_image_rows, self.specular, ok, _flat(li, shape, 3), _flat(v, shape, 3), _flat(n, shape, 3),
+                           _flat(xy, shape, 2))
         g = g.reshape(shape)
         a = _lookup(self.albedo, jnp.asarray(xy))
         rad = jnp.asarray(color, g.dtype).reshape((1,) * len(shape) + (3,)) * (a + g[..., None])

@@ -212,6 +212,88 @@ def test_render_only_masked_pixels(rng):
     assert empty.shape == ref.shape and np.all(empty == 0.0)
 
 
+class _Compiles:
+    """Counts the XLA programs compiled inside a `with` block (JAX's own log, `jax.log_compiles`)."""
+
+    def __init__(self):
+        import logging
+
+        self.names = []
+        outer = self
+
+        class _H(logging.Handler):
+            def emit(self, record):
+                msg = record.getMessage()
+                if msg.startswith("Compiling "):
+                    outer.names.append(msg.split(" with ")[0][len("Compiling "):])
+
+        self._handler, self._logger = _H(), logging.getLogger("jax")
+
+    def __enter__(self):
+        self._ctx = jax.log_compiles()
+        self._ctx.__enter__()
+        self._logger.addHandler(self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        self._logger.removeHandler(self._handler)
+        self._ctx.__exit__(*exc)
+
+
+def test_rendered_rows_pad_to_shared_buckets():
+    """The gathered rows: sorted pixel indices, then the one-past-the-end sentinel; counts bucketed."""
+    ok = np.zeros((100, 100), bool)
+    ok[3, 5] = ok[50, 7] = ok[99, 99] = True
+    sel = S._rendered_rows(ok)
+    assert sel.dtype == np.int32 and sel.shape == (S._MIN_ROWS,)  # few pixels: the floor
+    np.testing.assert_array_equal(sel[:3], [305, 5007, 9999])
+    assert np.all(sel[3:] == ok.size)
+    ok[:45] = True  # 4,501 rendered: the next power of two
+    assert S._rendered_rows(ok).shape == (8192,)
+    ok[:] = True  # every pixel: no padding beyond the image
+    np.testing.assert_array_equal(S._rendered_rows(ok), np.arange(ok.size))
+    small = np.zeros((12, 12), bool)  # an image below the floor: padded to its own size
+    assert S._rendered_rows(small).shape == (144,) and np.all(S._rendered_rows(small) == 144)
+    assert S._rendered_rows(jnp.asarray(ok)) is not None
+
+
+def test_renders_under_new_lights_and_views_compile_nothing(rng):
+    """After one render, renders under other lights and views reuse the compiled programs (each used to compile
+    new ones: its count of rendered pixels set the shapes) and still equal the per-pixel formula."""
+    normal, mask, xy, _ = _render_case(16)
+    smp = S.reflectance_samples(rng.uniform(0.2, 1.0, size=(3, 16, 16, 2)), normal, Z.VIEW,
+                                Z.theta_d_lights(np.array([0.3, 0.6, 0.9])), mask=mask, xy=xy)
+    m = S.fit_sbrdf(smp, 40)
+    p5 = rng.uniform(0, 1, size=(200, 5))
+    dich = S.DichromaticReflectance(jnp.asarray(rng.uniform(0.2, 0.8, size=(8, 8, 3))),
+                                    solvers.fit_sharing(p5, rng.uniform(0.5, 1, size=(200, 3)), 30, n_add=10),
+                                    solvers.fit_sharing(p5, rng.uniform(0, 1, size=200), 30, n_add=10))
+    renders = {"sbrdf": lambda li, v: m.render(normal, v, li, irradiance=1.5, mask=mask, xy=xy),
+               "dichromatic": lambda li, v: dich.render(normal, v, li, xy, color=(0.9, 0.5, 0.3), mask=mask)}
+    lights = Z.cone_lights(5, 1.0, phase=0.4)
+    views = [Z.VIEW, np.array([0.3, 0.0, 0.954]) / np.linalg.norm([0.3, 0.0, 0.954])]
+    for render in renders.values():
+        jax.block_until_ready(render(lights[0], views[0]))
+    counts = []
+    for li in lights[1:]:
+        for v in views:
+            for name, render in renders.items():
+                with _Compiles() as c:
+                    got = np.asarray(render(li, v))
+                assert c.names == [], (name, c.names)
+                nn = np.asarray(normal)
+                ok = mask & (nn @ li > 0) & (nn @ v > 0)
+                counts.append(int(ok.sum()))
+                if name == "sbrdf":
+                    q = np.asarray(jaxsh.sbrdf_points(jnp.broadcast_to(li, nn.shape), jnp.broadcast_to(v, nn.shape), nn, xy))
+                    want = np.maximum(np.asarray(m.fit(q.reshape(-1, 5))), 0.0).reshape(q.shape[:-1] + (2,))
+                    want = np.where(ok[..., None], want * (nn @ li * 1.5)[..., None], 0.0)
+                    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+                else:
+                    assert np.all(got[~ok] == 0.0) and np.all(got[ok] > 0.0)
+    assert len(set(counts)) >= 4  # the lights and views rendered different pixel counts
+
+
 def test_composite_models_contract_and_render(rng):
     """Eqs. 14, 15 models built by hand: combined contract (worst status, pooled RMS) and gathered render."""
     normal, mask, xy, light = _render_case()
@@ -324,6 +406,32 @@ def test_models_errors():
     m = S.fit_sbrdf(smp, 50)
     with pytest.raises(ValueError, match="xy"):
         m.brdf(normal, normal, normal)
+
+
+def test_ward_baseline_recovers_its_parameters_and_reuses_its_program(rng):
+    """The Ward baseline (figs. 7-9) fitted to noise-free Ward data recovers (rho_d, rho_s, alpha) per channel; a
+    second fit of the same size (other data) runs the compiled program again without compiling."""
+
+    def data(params, n=600):
+        wi = rng.normal(size=(n, 3))
+        wo = rng.normal(size=(n, 3))
+        wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]) + 0.2, np.abs(wo[:, 2]) + 0.2
+        wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+        nrm = np.broadcast_to([0.0, 0.0, 1.0], (n, 3))
+        f = np.stack([np.asarray(jaxsh.ward_isotropic(wi, wo, nrm, *p)) for p in params], -1)
+        return wi, wo, nrm, f, wi[:, 2]
+
+    truth1 = [(0.2, 0.3, 0.15), (0.05, 0.6, 0.3)]
+    fit1 = Z.fit_ward(data(truth1))
+    np.testing.assert_allclose(np.exp(np.asarray(fit1.theta)), truth1, rtol=1e-6)
+    truth2 = [(0.4, 0.1, 0.08), (0.3, 0.25, 0.4)]
+    d2 = data(truth2)
+    with _Compiles() as c:
+        fit2 = Z.fit_ward(d2)
+        theta2 = np.exp(np.asarray(fit2.theta))
+    assert c.names == [], c.names
+    np.testing.assert_allclose(theta2, truth2, rtol=1e-6)
 
 
 # --------------------------------------------------------------------------- paper protocols (reduced)

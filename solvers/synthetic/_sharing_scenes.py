@@ -149,10 +149,18 @@ def dichromatic_components(wi, wo, n, xy, sigma=0.4, ks=0.5, m_left=0.4, m_right
 
 
 def _lm_fit(model, theta0, wi, wo, n, f, cos, max_steps):
-    """Per-channel Levenberg–Marquardt on r = (model(θ) − f) cos θi; theta0 (R, C, P) restarts; best kept."""
+    """Per-channel Levenberg–Marquardt on r = (model(θ) − f) cos θi; theta0 (R, C, P) restarts; best kept.
 
-    def residual(theta, args):
-        fc = args
+    One compiled program per (model, shapes, `max_steps`): the samples are arguments, not constants
+    of a program made per call, so a second fit of the same size (another BRDF, another image count
+    after `max_samples`) reuses it.
+    """
+    return _lm_fit_jit(model, theta0, wi, wo, n, f, cos, max_steps)
+
+
+@jaxsh.jit
+def _lm_fit_jit(model, theta0, wi, wo, n, f, cos, max_steps):
+    def residual(theta, fc):
         return (model(theta, wi, wo, n) - fc) * cos
 
     solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9)
@@ -163,8 +171,7 @@ def _lm_fit(model, theta0, wi, wo, n, f, cos, max_steps):
         loss = jnp.sum(r * r)
         return sol.value, jnp.where(jnp.isfinite(loss), loss, jnp.inf)
 
-    fit = jax.jit(jax.vmap(jax.vmap(one, in_axes=(0, 1)), in_axes=(0, None)))
-    thetas, losses = fit(theta0, f)
+    thetas, losses = jax.vmap(jax.vmap(one, in_axes=(0, 1)), in_axes=(0, None))(theta0, f)
     best = jnp.argmin(losses, axis=0)
     return jnp.take_along_axis(thetas, best[None, :, None], axis=0)[0], jnp.min(losses, axis=0)
 
