@@ -1,4 +1,6 @@
-"""Independent references for the tests (scipy, explicit formulas)."""
+"""Independent references for the tests (scipy, explicit formulas), and a counter of compiled programs."""
+
+import logging
 
 import jax
 import numpy as np
@@ -92,3 +94,29 @@ def primitives(jaxpr) -> set:
                 elif isinstance(sub, jax.extend.core.Jaxpr):
                     out |= primitives(sub)
     return out
+
+
+class Compiles:
+    """Counts the XLA programs compiled inside a `with` block (JAX's own log, `jax.log_compiles`)."""
+
+    def __init__(self):
+        self.names = []
+        outer = self
+
+        class _H(logging.Handler):
+            def emit(self, record):
+                msg = record.getMessage()
+                if msg.startswith("Compiling "):
+                    outer.names.append(msg.split(" with ")[0][len("Compiling "):])
+
+        self._handler, self._logger = _H(), logging.getLogger("jax")
+
+    def __enter__(self):
+        self._ctx = jax.log_compiles()
+        self._ctx.__enter__()
+        self._logger.addHandler(self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        self._logger.removeHandler(self._handler)
+        self._ctx.__exit__(*exc)

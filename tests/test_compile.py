@@ -156,3 +156,72 @@ def test_importing_the_packages_leaves_jax_config_alone():
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip().splitlines()[-1] == "{}", p.stdout
+
+
+def _unit(rng, n):
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 0.2
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _rotation(rng):
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _lighting(rng):
+    sh = 0.1 * rng.normal(size=(49, 3))
+    sh[0] = 1.0
+    return jaxsh.Lighting(slow_sh=sh, fast_directions=_unit(rng, 1), fast_energy=rng.uniform(1, 2, (1, 3)))
+
+
+def _brdf(rng):
+    return jaxsh.TorranceSparrow(rng.uniform(0.2, 0.5, 3), rng.uniform(0.1, 0.3, 3), rng.uniform(1.3, 1.8), rng.uniform(0.1, 0.3))
+
+
+# Public functions and argument makers: each call of a maker gives new values of the same shapes.
+_N = 64
+_CALLS = {
+    "real_sh": lambda r: (_unit(r, _N), 12),
+    "directional_light_sh": lambda r: (_unit(r, 2), r.uniform(0.5, 2, (2, 3)), 16),
+    "disk_light_sh": lambda r: (_unit(r, 1)[0], r.uniform(0.05, 0.3), r.uniform(0.5, 2, 3), 16),
+    "split_disk_sources": lambda r: (_unit(r, 3), r.uniform(0.01, 0.3, 3), r.uniform(0.5, 2, (3, 3)), r.uniform(0.1, 0.3), 8),
+    "irradiance": lambda r: (r.normal(size=(9, 3)), _unit(r, _N)),
+    "convolve": lambda r: (r.normal(size=(81, 3)), r.uniform(size=9)),
+    "rotate_sh": lambda r: (r.normal(size=(81, 3)), _rotation(r)),
+    "filter_lighting_microfacet": lambda r: (r.normal(size=(81, 3)), r.uniform(0.05, 0.3)),
+    "microfacet_spectrum": lambda r: (r.uniform(0.05, 0.3), 16),
+    "legendre_p": lambda r: (r.uniform(-1, 1, _N), 12),
+    "project_latlong": lambda r: (r.uniform(size=(16, 32, 3)), 6),
+    "synthesize_latlong": lambda r: (r.normal(size=(49, 3)), 16, 32),
+    "fit_sh": lambda r: (_unit(r, _N), r.normal(size=(_N, 3)), 4),
+    "torrance_sparrow": lambda r: (_unit(r, _N), _unit(r, _N), _unit(r, _N), 0.5, 0.3, r.uniform(1.3, 1.8), r.uniform(0.1, 0.3)),
+    "cook_torrance": lambda r: (_unit(r, _N), _unit(r, _N), _unit(r, _N), 0.5, 0.3, r.uniform(0.1, 0.3), 1.5),
+    "sbrdf_points": lambda r: (_unit(r, _N), _unit(r, _N), _unit(r, _N), r.uniform(size=(_N, 2))),
+    "rbf_evaluate": lambda r: (r.uniform(size=(20, 5)), r.uniform(size=(20, 3)), r.uniform(size=(6, 3)), r.uniform(size=(30, 5))),
+    "render_practical": lambda r: (_unit(r, _N), _unit(r, _N), _brdf(r), _lighting(r)),
+    "render_reference": lambda r: (_unit(r, _N), _unit(r, _N), _brdf(r), jaxsh.Lighting(
+        fast_directions=_unit(r, 1), fast_energy=r.uniform(1, 2, (1, 3)), disk_directions=_unit(r, 1),
+        disk_radius=r.uniform(0.05, 0.2, 1), disk_radiance=r.uniform(0.5, 1.5, (1, 3)))),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_CALLS))
+def test_a_second_call_with_new_values_compiles_nothing(name):
+    """Values are traced, shapes and band limits static: a second call with new values of the same shapes runs the
+    programs of the first. (`disk_light_sh` and `directional_light_sh` ran their loop over l eagerly, which traced
+    and compiled it again at every call, 0.13-0.17 s; `split_disk_sources` compiled small programs for each new
+    count of fast sources.)"""
+    from .helpers import Compiles
+
+    rng = np.random.default_rng(7)
+    fun = getattr(jaxsh, name)
+    first, second = _CALLS[name](rng), _CALLS[name](rng)
+    jax.block_until_ready(fun(*first))
+    with Compiles() as c:
+        out = fun(*second)
+        jax.block_until_ready(out)
+    assert c.names == [], c.names

@@ -19,6 +19,8 @@ import solvers
 from solvers import _sharing as S
 from solvers import synthetic as Z
 
+from .helpers import Compiles
+
 
 def _data(rng, n, d, c=None):
     x = rng.uniform(-1, 1, size=(n, d))
@@ -212,34 +214,6 @@ def test_render_only_masked_pixels(rng):
     assert empty.shape == ref.shape and np.all(empty == 0.0)
 
 
-class _Compiles:
-    """Counts the XLA programs compiled inside a `with` block (JAX's own log, `jax.log_compiles`)."""
-
-    def __init__(self):
-        import logging
-
-        self.names = []
-        outer = self
-
-        class _H(logging.Handler):
-            def emit(self, record):
-                msg = record.getMessage()
-                if msg.startswith("Compiling "):
-                    outer.names.append(msg.split(" with ")[0][len("Compiling "):])
-
-        self._handler, self._logger = _H(), logging.getLogger("jax")
-
-    def __enter__(self):
-        self._ctx = jax.log_compiles()
-        self._ctx.__enter__()
-        self._logger.addHandler(self._handler)
-        return self
-
-    def __exit__(self, *exc):
-        self._logger.removeHandler(self._handler)
-        self._ctx.__exit__(*exc)
-
-
 def test_rendered_rows_pad_to_shared_buckets():
     """The gathered rows: sorted pixel indices, then the one-past-the-end sentinel; counts bucketed."""
     ok = np.zeros((100, 100), bool)
@@ -278,7 +252,7 @@ def test_renders_under_new_lights_and_views_compile_nothing(rng):
     for li in lights[1:]:
         for v in views:
             for name, render in renders.items():
-                with _Compiles() as c:
+                with Compiles() as c:
                     got = np.asarray(render(li, v))
                 assert c.names == [], (name, c.names)
                 nn = np.asarray(normal)
@@ -427,7 +401,7 @@ def test_ward_baseline_recovers_its_parameters_and_reuses_its_program(rng):
     np.testing.assert_allclose(np.exp(np.asarray(fit1.theta)), truth1, rtol=1e-6)
     truth2 = [(0.4, 0.1, 0.08), (0.3, 0.25, 0.4)]
     d2 = data(truth2)
-    with _Compiles() as c:
+    with Compiles() as c:
         fit2 = Z.fit_ward(d2)
         theta2 = np.exp(np.asarray(fit2.theta))
     assert c.names == [], c.names
