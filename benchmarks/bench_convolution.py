@@ -5,7 +5,7 @@ Run from the repository root with the project's venv::
     python benchmarks/bench_convolution.py            # full run (~1 min on 2 cores)
     python benchmarks/bench_convolution.py --quick    # reduced sizes (~30 s, mostly compile time)
 
-Options: ``--quick`` (smaller problems), ``--only {irradiance,brdf,convolve}``,
+Options: ``--quick`` (smaller problems), ``--only {irradiance,brdf,convolve,lights}``,
 ``--seed N``. The script enables float64 in JAX (``jax_enable_x64``); the
 library itself never does.
 
@@ -67,6 +67,18 @@ same work, so < 1 means jaxsh is faster.
      of real SH at the pixel centres precomputed once (built with
      ``jaxsh.real_sh``; building it is timed separately and not included in
      the warm time). Y is 1.1 GB in float64 at 256x512.
+
+4. Lighting from sources, one call per source, as a light stage's images
+   are each lit by their own (lmax 16, float64): 100 directional sources
+   through ``jaxsh.directional_light_sh`` and 20 disks through
+   ``jaxsh.disk_light_sh``, each call with new values of the same shapes;
+   "first" is the first source (compilation), "warm" the mean of the others
+   per source. Peer: SciPy per source, the real SH at the direction from
+   ``scipy.special.sph_harm_y`` (docs/conventions.md's real convention) times
+   the energy; for a disk, its zonal closed form with
+   ``scipy.special.eval_legendre`` (R&H's Λ_l and [P_{l-1} - P_{l+1}](cos r)).
+   Before session 21 each jaxsh call traced and compiled its loop over l
+   again: 0.13-0.17 s per source.
 
 Other processes on the machine add noise (the load average at start is
 printed): on a quiet machine treat ratios within ~20% as equal; under load
@@ -417,6 +429,62 @@ def bench_convolve(args, rng):
     print(flush=True)
 
 
+def _scipy_real_sh(d, lmax):
+    """Real SH of one unit direction from scipy's complex ones (docs/conventions.md)."""
+    theta, phi = np.arctan2(np.hypot(d[0], d[1]), d[2]), np.arctan2(d[1], d[0])
+    out = np.empty((lmax + 1) ** 2)
+    for l in range(lmax + 1):
+        out[l * l + l] = sph_harm_y(l, 0, theta, phi).real
+        for m in range(1, l + 1):
+            y = sph_harm_y(l, m, theta, phi)
+            out[l * l + l + m] = np.sqrt(2.0) * (-1) ** m * y.real
+            out[l * l + l - m] = np.sqrt(2.0) * (-1) ** m * y.imag
+    return out
+
+
+def _scipy_disk_sh(d, r, rad, lmax):
+    from scipy.special import eval_legendre
+
+    u = np.cos(r)
+    zon = np.empty(lmax + 1)
+    zon[0] = 2 * np.pi * (1 - u) / np.sqrt(4 * np.pi)
+    for l in range(1, lmax + 1):
+        zon[l] = np.sqrt(np.pi / (2 * l + 1)) * (eval_legendre(l - 1, u) - eval_legendre(l + 1, u))
+    lam = np.sqrt(4 * np.pi / (2 * np.arange(lmax + 1) + 1))
+    ls = np.repeat(np.arange(lmax + 1), 2 * np.arange(lmax + 1) + 1)
+    return ((lam * zon)[ls] * _scipy_real_sh(d, lmax))[:, None] * rad[None, :]
+
+
+def bench_lights(args, rng):
+    lmax = 16
+    tab = Table(f"4. LIGHTING FROM SOURCES, one call per source, lmax={lmax} RGB (float64); ratio = jaxsh / peer",
+                ["tool", "sources", "first (1st source)", "warm per source", "jaxsh/peer", "max|diff|"])
+    for kind, n_src in (("directional", 100), ("disk", 20)):
+        d = unit_dirs(rng, n_src, np.float64)
+        e = rng.uniform(0.5, 2.0, (n_src, 3))
+        r = rng.uniform(0.05, 0.3, n_src)
+        if kind == "directional":
+            ours_f = lambda k: jaxsh.directional_light_sh(d[k:k + 1], e[k:k + 1], lmax)  # noqa: E731
+            peer_f = lambda k: _scipy_real_sh(d[k], lmax)[:, None] * e[k][None, :]  # noqa: E731
+        else:
+            ours_f = lambda k: jaxsh.disk_light_sh(d[k], r[k], e[k], lmax)  # noqa: E731
+            peer_f = lambda k: _scipy_disk_sh(d[k], r[k], e[k], lmax)  # noqa: E731
+        t0 = time.perf_counter()
+        ours = [np.asarray(ours_f(0))]
+        first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        ours += [np.asarray(ours_f(k)) for k in range(1, n_src)]
+        warm = (time.perf_counter() - t0) / (n_src - 1)
+        t0 = time.perf_counter()
+        peer = [peer_f(k) for k in range(n_src)]
+        tp = (time.perf_counter() - t0) / n_src
+        diff = max(float(np.abs(a - b).max()) for a, b in zip(ours, peer))
+        tab.add(f"jaxsh {kind}_light_sh", str(n_src), fmt_t(first), fmt_t(warm), ratio(warm, tp), fmt_e(diff))
+        tab.add(f"scipy sph_harm_y{' + eval_legendre' if kind == 'disk' else ''}", str(n_src), "-", fmt_t(tp), "", "")
+    tab.show()
+    print(flush=True)
+
+
 # --------------------------------------------------------------------------
 
 
@@ -424,7 +492,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="reduced sizes (~30 s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--only", choices=["irradiance", "brdf", "convolve"], default=None)
+    p.add_argument("--only", choices=["irradiance", "brdf", "convolve", "lights"], default=None)
     args = p.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     sign_err = check_sign_convention()
@@ -446,6 +514,8 @@ def main(argv=None):
         bench_brdf(args, rng)
     if args.only in (None, "convolve"):
         bench_convolve(args, rng)
+    if args.only in (None, "lights"):
+        bench_lights(args, rng)
     print(f"total wall time {time.perf_counter() - t0:.1f} s")
     return 0
 
