@@ -23,8 +23,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 from ._custom_types import ScalarLike, SequenceLike
 
-from ._compile import jit
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_values, coeff_layout
+from ._compile import jit
 from ._convolution import convolve
 from ._indexing import sh_degrees
 from ._sh import _real_sh_flat, _unit_vectors

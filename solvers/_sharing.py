@@ -830,7 +830,7 @@ def _eval_rendered(fn, args, ok, *rows):
     program per (shape, padded count; `_rendered_rows`); traced `ok`: every pixel is evaluated.
     """
     sel = _rendered_rows(ok)
-    if sel is None:
+    if sel is None or sel.size > rows[0].shape[0]:  # traced, or no pixels at all (nothing to gather from)
         return fn(args, *rows)
     return _eval_rows_jit(fn, args, sel, *rows)
 

@@ -212,6 +212,8 @@ def test_render_only_masked_pixels(rng):
     np.testing.assert_allclose(np.asarray(traced), ref, rtol=1e-12, atol=1e-14)
     empty = np.asarray(m.render(normal, Z.VIEW, light, mask=np.zeros_like(mask), xy=xy))
     assert empty.shape == ref.shape and np.all(empty == 0.0)
+    nothing = m.render(normal[:0], Z.VIEW, light, mask=mask[:0], xy=xy[:0])  # a frame of no pixels
+    assert nothing.shape == (0,) + ref.shape[1:]
 
 
 def test_rendered_rows_pad_to_shared_buckets():
