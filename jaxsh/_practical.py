@@ -33,7 +33,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Real
 from ._compile import jit
 from ._custom_types import SequenceLike
 
-from ._checks import check_dirs, check_positive_int
+from ._checks import as_jax, check_dirs, check_positive_int
 from ._indexing import sh_degrees
 from ._model import Lighting, TorranceSparrow
 from ._reflectance import _fresnel_normalized_jit, _half_angle_pairs, _safe_sqrt, _theta_h_sq, fresnel_normalized
@@ -396,7 +396,7 @@ def _broadcasts_to(shape, want) -> bool:
 
 def _broadcast_to_batch(x, batch, core, name, dt):
     """`x` of shape `(..., *core)` broadcast to `batch + core` and flattened to `(N, *core)`."""
-    x = jnp.asarray(x)
+    x = as_jax(x)  # placed without a program (`jnp.asarray` compiles one per new NumPy shape)
     want = tuple(batch) + tuple(core)
     if x.ndim < len(core) or x.shape[x.ndim - len(core):] != tuple(core) or not _broadcasts_to(x.shape, want):
         what = {"transfer": " (the batch of `normals`/`views` + 9 transfer coefficients)",
@@ -425,7 +425,7 @@ def _prepare_visibility(lighting: Lighting, batch, transfer, fast_visibility, re
             raise ValueError(f"`fast_visibility` must have shape {tuple(batch) + (0,)}, got {tuple(jnp.shape(fast_visibility))}")
         fast_visibility = None
     if transfer is not None:
-        t = jnp.asarray(transfer)
+        t = as_jax(transfer)
         k = (min(lighting.lmax, 2) + 1) ** 2
         if t.ndim < 1 or t.shape[-1] < k:
             raise ValueError(f"`transfer` must have shape {tuple(batch) + (9,)}, got {tuple(t.shape)}")

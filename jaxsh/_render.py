@@ -218,6 +218,12 @@ def render_practical(
 
     **Returns:** `Components(diffuse, specular_slow, specular_fast, total)`,
     each `(..., C)`.
+
+    **Compiled programs:** one per shape, dtype and static option. Called
+    outside `jit`, the pixels are padded to a bucket of sizes
+    (`_pixel_bucket`: N rounded up to three significant bits, at least 1,024)
+    so that renders of other pixel counts in the bucket compile nothing
+    (docs/performance.md, fifteenth round).
     """
     brdf, lighting, light_kw = model_args("render_practical", brdf, lighting, legacy, legacy_kw, _LIGHT_KW)
     lighting = practical_lighting(lighting, light_kw)
@@ -242,11 +248,53 @@ def render_practical(
         mask = jnp.broadcast_to(jnp.asarray(mask, bool), batch).reshape(-1)
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
     sigma, mu = _check_sigma_traced(jnp.asarray(brdf.sigma, dt), mu)
-    rows = _choose_table(method, lighting, brdf.sigma, n.shape[0])
+    npx = n.shape[0]
+    rows = _choose_table(method, lighting, brdf.sigma, npx)
+    (n, v, kd, ks, *vis), mask = _pad_pixels(npx, (n, v, kd, ks, *vis), mask, (slow, sigma, mu, fdir, fen))
     terms = _terms(n, v, mask, slow, sigma, fdir, fen, *vis, bool(exact_fast_diffuse), rows)
     out = _combine(terms, mask, kd, ks, mu, sigma)
     c = out.total.shape[-1]
+    if out.total.shape[0] != npx:  # padded: the pixels' own rows, copied on the host (no program per count)
+        out = Components(*(jax.device_put(np.asarray(x)[:npx]) for x in out))
     return Components(*(x.reshape(batch + (c,)) for x in out))
+
+
+# `render_practical` pads the pixel count N to a bucket, so that renders of views with different pixel counts
+# (flat pixel lists, e.g. `solvers.Observations`) share compiled programs: N rounded up to three significant
+# bits (less than 25 % more rows), at least `_MIN_PIXELS`. Compiling `_terms` and `_combine` takes 0.5-0.7 s;
+# rendering 5,000 pixels a few ms.
+_MIN_PIXELS = 1024
+
+
+def _pixel_bucket(npx: int) -> int:
+    if npx <= _MIN_PIXELS:
+        return _MIN_PIXELS
+    step = 1 << max(0, (npx - 1).bit_length() - 3)
+    return -(-npx // step) * step
+
+
+def _pad_pixels(npx: int, arrays, mask, others=()):
+    """The per-pixel arrays (leading axis `npx`) padded to `_pixel_bucket(npx)` rows outside `mask` (made if None).
+
+    On the host, in NumPy: an eager JAX operation on a new shape would itself compile. Only when nothing of the
+    render (`arrays`, `mask`, the other inputs `others`) is traced: under the caller's own `jit`, `grad` or
+    `vmap` the shapes are fixed by the trace, padding would only add work, and the rows could not be cut on the
+    host. Arrays of another leading size (a `(1, C)` parameter) and None pass unchanged.
+    """
+    size = _pixel_bucket(npx)
+    leaves = jax.tree_util.tree_leaves((arrays, mask, others))
+    if size == npx or any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return arrays, mask
+    pad = size - npx
+
+    def grow(x):
+        if x is None or x.shape[0] != npx:
+            return x
+        x = np.asarray(x)
+        return np.concatenate([x, np.zeros((pad,) + x.shape[1:], x.dtype)])
+
+    keep = np.ones(npx, bool) if mask is None else np.asarray(mask, bool)
+    return tuple(grow(x) for x in arrays), np.concatenate([keep, np.zeros(pad, bool)])
 
 
 # `method="auto"` takes the table when N (lmax+1)^2 >= _TABLE_COST * H * W and N >= _TABLE_MIN_PIXELS:

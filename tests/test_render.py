@@ -296,3 +296,49 @@ def test_normal_gradient_at_theta_h_zero(dtype, axis):
     # the factored model has the same gradient
     terms_f = lambda n: jnp.sum(jaxsh.practical_terms(n[None], v[None], light)(brdf))
     np.testing.assert_allclose(np.asarray(jax.grad(terms_f)(v)), np.asarray(jax.grad(f)(v)), rtol=tol, atol=tol)
+
+
+def test_pixel_buckets_bound_the_padding():
+    from jaxsh._render import _MIN_PIXELS, _pixel_bucket
+
+    sizes = np.arange(1, 300_000, 37)
+    b = np.array([_pixel_bucket(int(n)) for n in sizes])
+    assert np.all(b >= sizes) and np.all(b[sizes <= _MIN_PIXELS] == _MIN_PIXELS)
+    assert np.all(b[sizes > _MIN_PIXELS] < 1.25 * sizes[sizes > _MIN_PIXELS])
+    assert len(set(b.tolist())) < 80  # eight buckets an octave above 1,024 pixels
+    assert _pixel_bucket(5000) == _pixel_bucket(4900) == 5120 and _pixel_bucket(262144) == 262144
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_pixel_counts_in_one_bucket_share_the_compiled_programs(dtype):
+    """Flat pixel lists of different lengths (views of one object) reuse the programs of the first render; each
+    pixel's value is its own, whatever the other rows (per-pixel textures, visibility and a mask included)."""
+    from .helpers import Compiles
+
+    rng = np.random.default_rng(3)
+    n = random_dirs(rng, (5000,))
+    n[:, 2] = np.abs(n[:, 2]) + 0.1
+    n = (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(dtype)
+    v = np.broadcast_to(V, n.shape).astype(dtype)
+    kd = rng.uniform(0.1, 0.5, (5000, 3)).astype(dtype)  # a texture
+    fvis = (rng.uniform(size=(5000, 1)) > 0.3).astype(dtype)
+    mask = rng.uniform(size=5000) > 0.1
+    slow = (0.1 * rng.normal(size=(25, 3))).astype(dtype)
+    slow[0] = 1.0
+    lit = jaxsh.Lighting(slow_sh=slow, fast_directions=np.array([[0.3, 0.2, 0.933]], dtype),
+                         fast_energy=np.array([[2.0, 1.5, 1.0]], dtype))
+
+    def render(k):
+        brdf = jaxsh.TorranceSparrow(kd[:k], KS.astype(dtype), dtype(1.5), dtype(0.2))
+        return jaxsh.render_practical(n[:k], v[:k], brdf, lit, fast_visibility=fvis[:k], mask=mask[:k]).total
+
+    full = np.asarray(render(5000))
+    with Compiles() as c:
+        part = np.asarray(render(4900))
+    assert c.names == [], c.names
+    assert part.shape == (4900, 3) and part.dtype == dtype
+    tol = 1e-13 if dtype == np.float64 else 1e-6
+    np.testing.assert_allclose(part, full[:4900], rtol=tol, atol=tol)
+    assert np.all(part[~mask[:4900]] == 0.0) and np.abs(part).max() > 0.1
+    traced = np.asarray(jax.jit(render, static_argnums=0)(4900))  # under the caller's jit: no padding
+    np.testing.assert_allclose(traced, part, rtol=10 * tol, atol=10 * tol)
