@@ -32,6 +32,7 @@ test-all: install-tests
 bench: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[benchmarks]"
 	$(BIN)/python benchmarks/bench_sh.py
+	$(BIN)/python benchmarks/bench_sh.py --only basis --hugepages
 	$(BIN)/python benchmarks/bench_convolution.py
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_render_table.py

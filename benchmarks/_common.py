@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 
 import jax
@@ -154,3 +156,62 @@ def run_peer(script, spec, arrays=None, timeout=1800):
             meta = json.loads(str(z["meta"]))
             res = {k: z[k] for k in z.files if k != "meta"}
     return meta, res
+
+
+# --------------------------------------------------------------------------- glibc's malloc and huge pages
+
+HUGEPAGES = "glibc.malloc.hugetlb=1"
+
+
+def hugepages_env(env):
+    """A copy of `env` whose ``GLIBC_TUNABLES`` holds ``glibc.malloc.hugetlb=1`` (other tunables kept).
+
+    With it (glibc >= 2.35), malloc advises transparent huge pages for the blocks it maps, which XLA's CPU
+    buffers of more than 32 MB are: the first write of a fresh output then takes one fault per 2 MB instead of
+    one per 4 KB page (docs/performance.md, "Page faults on large outputs"). NumPy already advises huge pages
+    for its own large arrays, so NumPy and C++ peers are unaffected. Glibc reads the tunable when a process
+    starts: it cannot be set from inside one.
+    """
+    kept = [t for t in env.get("GLIBC_TUNABLES", "").split(":") if t and not t.startswith("glibc.malloc.hugetlb=")]
+    return {**env, "GLIBC_TUNABLES": ":".join(kept + [HUGEPAGES])}
+
+
+def hugepages_on(env=None):
+    """Whether `env` (default: this process's environment) sets ``glibc.malloc.hugetlb=1``."""
+    env = os.environ if env is None else env
+    return HUGEPAGES in env.get("GLIBC_TUNABLES", "").split(":")
+
+
+def thp_mode():
+    """The kernel's transparent huge page mode (``always``, ``madvise``, ``never``), or ``unknown``."""
+    try:
+        with open("/sys/kernel/mm/transparent_hugepage/enabled") as f:
+            text = f.read()
+    except OSError:
+        return "unknown"
+    return text.split("[", 1)[1].split("]", 1)[0] if "[" in text else "unknown"
+
+
+def malloc_line():
+    """One line for a benchmark's header: how large XLA buffers are backed in this run."""
+    if hugepages_on():
+        return (f"glibc malloc huge pages: on (GLIBC_TUNABLES={os.environ['GLIBC_TUNABLES']}; kernel THP mode "
+                f"{thp_mode()})")
+    return (f"glibc malloc huge pages: off, the default (kernel THP mode {thp_mode()}); --hugepages runs with "
+            f"GLIBC_TUNABLES={HUGEPAGES} (docs/performance.md, 'Page faults on large outputs')")
+
+
+def add_hugepages_option(parser):
+    parser.add_argument(
+        "--hugepages", action="store_true",
+        help=f"run with GLIBC_TUNABLES={HUGEPAGES} (the script starts itself again with it): XLA's large CPU "
+             "buffers on transparent huge pages, as NumPy's arrays already are",
+    )
+
+
+def apply_hugepages(args):
+    """With ``--hugepages``, replace this process by the same command with `hugepages_env` (once)."""
+    if getattr(args, "hugepages", False) and not hugepages_on():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execve(sys.executable, [sys.executable] + sys.argv, hugepages_env(os.environ))

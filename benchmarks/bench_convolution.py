@@ -116,7 +116,10 @@ warnings.filterwarnings("ignore", category=FutureWarning)
 
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import MAX_REPEATS, MIN_TOTAL, Table, _block, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402,F401
+from _common import (  # noqa: E402,F401
+    MAX_REPEATS, MIN_TOTAL, Table, _block, add_hugepages_option, apply_hugepages, fmt_e, fmt_t, malloc_line, ratio,
+    time_jax, time_np,
+)
 
 
 def unit_dirs(rng, n, dtype):
@@ -493,7 +496,9 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="reduced sizes (~30 s)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--only", choices=["irradiance", "brdf", "convolve", "lights"], default=None)
+    add_hugepages_option(p)
     args = p.parse_args(argv)
+    apply_hugepages(args)
     rng = np.random.default_rng(args.seed)
     sign_err = check_sign_convention()
 
@@ -503,6 +508,7 @@ def main(argv=None):
           f"jaxsh compile options {jaxsh.compile_options()}")
     print(f"  jaxsh {jaxsh.__version__}, numpy {np.__version__}, scipy {scipy.__version__}")
     print(f"  load average at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
+    print(f"  {malloc_line()}")
     print(f"  real SH l<=2 vs R&H's printed polynomials (sign convention check): max diff {sign_err:.1e}")
     print("  threads: XLA CPU uses all cores; NumPy matmul/einsum through its BLAS "
           f"(OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}); NumPy ufuncs and FFT 1 thread.")

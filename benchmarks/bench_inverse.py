@@ -9,8 +9,9 @@ Run from the repository root with the project's venv::
 Options: ``--size N`` (image side, default 256), ``--quick`` (= ``--size 64``
 and fewer warm repeats), ``--cache-dir DIR`` (the rendered capture is cached
 there as .npz, default ``/tmp/jaxsh_bench_inverse``; ``--no-cache`` renders
-again). The script enables float64 in JAX (``jax_enable_x64``); the library
-itself never does.
+again), ``--hugepages`` (run with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``:
+XLA's large buffers on huge pages; the header says which). The script
+enables float64 in JAX (``jax_enable_x64``); the library itself never does.
 
 The capture: ``solvers.sphere_capture`` -- 3 orthographic views of a unit
 sphere (Torrance-Sparrow kd (0.55, 0.45, 0.35), ks 0.25, mu 1.6, sigma 0.12)
@@ -108,7 +109,7 @@ warnings.filterwarnings("ignore", message=".*64-bit precision.*")
 warnings.filterwarnings("ignore", category=FutureWarning)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import Table, fmt_t  # noqa: E402
+from _common import Table, add_hugepages_option, apply_hugepages, fmt_t, malloc_line  # noqa: E402
 
 KD = np.array([0.55, 0.45, 0.35])
 KS = np.array([0.25, 0.25, 0.25])
@@ -532,7 +533,9 @@ def main():
     ap.add_argument("--cache-dir", default="/tmp/jaxsh_bench_inverse", help="where the rendered capture is cached")
     ap.add_argument("--no-cache", action="store_true", help="render the capture again, do not cache it")
     ap.add_argument("--blas-threads", type=int, default=1, help="OpenBLAS threads for the numpy/scipy baseline")
+    add_hugepages_option(ap)
     args = ap.parse_args()
+    apply_hugepages(args)
     size = 64 if args.quick else args.size
     reps = 1 if args.quick else 3
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, scipy {scipy.__version__}, "
@@ -541,6 +544,7 @@ def main():
         print(f"load average at start: {os.getloadavg()}")
     except OSError:
         pass
+    print(malloc_line())
     print(f"float64; material kd={KD.tolist()}, ks={KS.tolist()}, mu={MU}, sigma={SIGMA}; noise {NOISE:.0%}; "
           f"lighting: 2 disks (SH lmax {LIGHT_LMAX}) + 1 directional; baseline BLAS threads {args.blas_threads}")
     print(f"self-check: numpy real SH (lmax {LIGHT_LMAX}) = jaxsh.real_sh to {self_check():.1e}; Fresnel ok")

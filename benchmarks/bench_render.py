@@ -73,7 +73,9 @@ warnings.filterwarnings("ignore", category=FutureWarning)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
+from _common import (  # noqa: E402
+    Table, add_hugepages_option, apply_hugepages, fmt_e, fmt_t, malloc_line, ratio, time_jax, time_np,
+)
 
 from solvers.synthetic import procedural_sky  # noqa: E402
 
@@ -318,7 +320,9 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller images and maps")
     ap.add_argument("--seed", type=int, default=0)
+    add_hugepages_option(ap)
     args = ap.parse_args()
+    apply_hugepages(args)
     q = args.quick
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, trimesh {trimesh.__version__}, "
           f"Python {platform.python_version()}, {os.cpu_count()} CPUs, embree = {jaxsh.embree_available()}; "
@@ -327,6 +331,7 @@ def main():
         print(f"load average at start: {os.getloadavg()}")
     except OSError:
         pass
+    print(malloc_line())
     print(f"float64 (jax_enable_x64 = {jax.config.jax_enable_x64}); material kd={np.asarray(KD).tolist()}, "
           f"ks={np.asarray(KS).tolist()}, mu={MU}, sigma={SIGMA}")
     t_all = time.perf_counter()

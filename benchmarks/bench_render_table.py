@@ -50,7 +50,9 @@ warnings.filterwarnings("ignore", message=".*64-bit precision.*")
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
+from _common import (  # noqa: E402
+    Table, add_hugepages_option, apply_hugepages, fmt_e, fmt_t, malloc_line, ratio, time_jax, time_np,
+)
 
 from solvers.synthetic import procedural_sky  # noqa: E402
 
@@ -120,7 +122,9 @@ def accuracy(b, exact):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="a 256x256 image")
+    add_hugepages_option(ap)
     args = ap.parse_args()
+    apply_hugepages(args)
     size = 256 if args.quick else 512
     print(f"jaxsh {jaxsh.__version__}, JAX {jax.__version__}, numpy {np.__version__}, Python {platform.python_version()}, "
           f"{os.cpu_count()} CPUs; jaxsh compile options {jaxsh.compile_options()}")
@@ -128,6 +132,7 @@ def main():
         print(f"load average at start: {os.getloadavg()}")
     except OSError:
         pass
+    print(malloc_line())
     t_all = time.perf_counter()
     sky = procedural_sky(256, 512)
     slow = jaxsh.project_latlong(sky, lmax=LMAX)

@@ -7,7 +7,9 @@ Run from the repository root with the project's venv::
 
 Options: ``--quick`` (smaller problems; most of what remains is compile
 time), ``--no-s2fft-full`` (skip s2fft's full-resolution L=512 run, ~30 s),
-``--only {basis,projection,rotation}``, ``--seed N``. The script enables
+``--only {basis,projection,rotation}``, ``--seed N``, ``--hugepages`` (run
+with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``: XLA's large outputs on huge
+pages, as NumPy's are; the header says which). The script enables
 float64 in JAX (``jax_enable_x64``); the library itself never does.
 
 What is compared (all timings are wall-clock on the host CPU; JAX functions
@@ -138,7 +140,10 @@ PERM = np.array([1, 2, 0])
 
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import MAX_REPEATS, MIN_TOTAL, Table, _block, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402,F401
+from _common import (  # noqa: E402,F401
+    MAX_REPEATS, MIN_TOTAL, Table, _block, add_hugepages_option, apply_hugepages, fmt_e, fmt_t, malloc_line, ratio,
+    time_jax, time_np,
+)
 
 
 # --------------------------------------------------------------------------
@@ -648,7 +653,9 @@ def main(argv=None):
     p.add_argument("--no-s2fft-full", action="store_true", help="skip s2fft at L=512 on 1024x1023")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--only", choices=["basis", "projection", "rotation"], default=None)
+    add_hugepages_option(p)
     args = p.parse_args(argv)
+    apply_hugepages(args)
     rng = np.random.default_rng(args.seed)
     self_check_conventions()
 
@@ -664,6 +671,7 @@ def main(argv=None):
     print(f"  jaxsh {jaxsh.__version__}, sphericart {ver(sphericart)}, e3nn-jax {ver(e3nn)}, "
           f"ducc0 {ver(ducc0)}, s2fft {ver(s2fft)}, pyshtools {ver(pyshtools)}")
     print(f"  load average at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
+    print(f"  {malloc_line()}")
     print("  sphericart-jax is not measured: it requires jax<0.10.2 (installed: jax "
           f"{jax.__version__}); sphericart's C++ core is measured through its NumPy API instead.")
     print("  threads: XLA CPU uses all cores; sphericart OpenMP "

@@ -59,7 +59,9 @@ warnings.filterwarnings("ignore", category=DeprecationWarning)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from _common import Table, fmt_e, fmt_t, ratio, time_jax, time_np  # noqa: E402
+from _common import (  # noqa: E402
+    Table, add_hugepages_option, apply_hugepages, fmt_e, fmt_t, malloc_line, ratio, time_jax, time_np,
+)
 
 import jaxsh  # noqa: E402
 import solvers  # noqa: E402
@@ -113,9 +115,12 @@ def scipy_greedy(p, v, w, k_max, n_init, n_add, seed=0):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
+    add_hugepages_option(ap)
     args = ap.parse_args()
+    apply_hugepages(args)
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, load average {os.getloadavg()[0]:.2f}; "
           f"interpax: {interpax.__version__ if interpax else 'not available (' + str(INTERPAX_ERR) + ')'}")
+    print(malloc_line())
     sizes = (1000, 2000) if args.quick else (1000, 2000, 5000)
     n_eval = 256 if args.quick else 512
     p_all, v_all = samples(160, 10)
