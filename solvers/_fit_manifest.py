@@ -38,7 +38,7 @@ from ._brdf import fit_brdf
 from ._data import Lighting, TorranceSparrow, observations, predict, status_name
 from ._factorize import factorize
 from ._lighting import inverse_lighting
-from ._scale import shard_observations
+from ._scale import pad_observations, shard_observations
 from ._render_manifest import (
     check_outputs,
     check_unsupported,
@@ -220,7 +220,11 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         n_valid = obs.n_samples
     timings["setup"] = time.perf_counter() - t
     say(f"{n_valid} valid pixels in {len(gbs)} views")
-    sobs = obs if mesh is None else shard_observations(obs, mesh)  # the solvers' input; `obs` for the re-renders
+    # The solvers' input (`obs` stays for the re-renders): padded with weight-0 samples to a size bucket, so that
+    # captures whose pixel counts share a bucket share the compiled programs (in the compilation cache too), then
+    # sharded over `mesh` if any. The same fit to rounding.
+    sobs = pad_observations(obs, bucket=True)
+    sobs = sobs if mesh is None else shard_observations(sobs, mesh)
     t = time.perf_counter()
     std = None
     if known is not None:
@@ -293,6 +297,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         "rms": _json(res.rms),
         "rel_rms": _json(res.rel_rms),
         "iterations": int(getattr(res, "iterations", 0)),
+        "samples": {"valid": n_valid, "total": obs.n_samples, "solved": sobs.n_samples},
         "timings_s": timings,
     }
     if textured is not None:

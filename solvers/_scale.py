@@ -89,13 +89,22 @@ def _mesh_axis(mesh: Mesh, axis: str) -> int:
     return int(mesh.shape[axis])
 
 
-def pad_observations(obs: Observations, multiple: int = 1, size: int | None = None) -> Observations:
+def pad_observations(obs: Observations, multiple: int = 1, size: int | None = None, *, bucket: bool = False) -> Observations:
     """`obs` with weight-0 samples appended, to a multiple of `multiple` samples (or exactly `size`).
+
+    With `bucket=True`, first to the size bucket of its $N$ samples: $N$ rounded up to three significant bits
+    (less than 25 % more samples; four buckets an octave), at least 1,024. The solvers' compiled programs
+    depend on the sample count, so captures whose counts share a bucket share them: a second capture's fit
+    compiles nothing in the same process, and `jaxsh fit` finds its programs in the compilation cache
+    (docs/performance.md, sixteenth round). `size` and `bucket` exclude each other.
 
     A padded sample copies the geometry of sample 0 (normal, view, visibility
     terms, texel and indices: finite values, so no NaN can enter a sum) with
     zero radiance and zero weight: it adds nothing to any weighted sum, and
-    the solvers count only samples of positive weight. Outside jit.
+    the solvers count only samples of positive weight. The results equal the
+    unpadded ones to rounding (the sums are grouped differently). Outside jit;
+    concrete single-device arrays are padded on the host (an eager JAX
+    concatenation would compile a program for each new count).
     Note that `to_images` of a padded `Observations` would also write the
     padded samples (onto sample 0's pixel): scatter `values[:obs.n_samples]`
     with the unpadded `obs`.
@@ -103,25 +112,47 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
     multiple = check_int(multiple, "multiple")
+    if bucket and size is not None:
+        raise ValueError("give `size` or `bucket=True`, not both")
     n = obs.n_samples
-    target = -(-n // multiple) * multiple if size is None else check_int(size, "size")
+    target = _size_bucket(n) if bucket else n
+    target = -(-target // multiple) * multiple if size is None else check_int(size, "size")
     if target < n:
         raise ValueError(f"`size` must be >= the {n} samples of `obs`, got {target}")
     pad = target - n
     if pad == 0:
         return obs
+    arrays = [getattr(obs, f) for f in _PIXEL_FIELDS]
+    host = all(a is None or (not isinstance(a, jax.core.Tracer) and getattr(a, "is_fully_addressable", True)
+                             and len(getattr(a, "devices", lambda: ())()) <= 1) for a in arrays)
 
-    def grow(name):
-        a = getattr(obs, name)
+    def grow(name, a):
         if a is None:
             return None
+        if host:
+            a = np.asarray(a)
+            extra = np.zeros((pad,) + a.shape[1:], a.dtype) if name in ("values", "weights") else np.repeat(a[:1], pad, 0)
+            return jax.device_put(np.concatenate([a, extra]))  # a new array: `device_put` may alias it (CPU)
         if name in ("values", "weights"):
             extra = jnp.zeros((pad,) + a.shape[1:], a.dtype)
         else:
             extra = jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])
         return jnp.concatenate([jnp.asarray(a), extra])
 
-    return Observations(*(grow(f) for f in _PIXEL_FIELDS), obs.image_shapes, obs.n_texels)
+    return Observations(*(grow(f, a) for f, a in zip(_PIXEL_FIELDS, arrays)), obs.image_shapes, obs.n_texels)
+
+
+_MIN_BUCKET = 1024
+
+
+def _size_bucket(n: int) -> int:
+    """The size bucket of `n` samples (`pad_observations(..., bucket=True)`): `n` rounded up to three significant
+    bits, at least `_MIN_BUCKET`. For $2^{k-1} < n \\le 2^k$ the buckets are the multiples of $2^{k-3}$, so a
+    bucket holds fewer than $1.25\\,n$ rows. (`jaxsh.render_practical` buckets its pixels by the same rule.)"""
+    if n <= _MIN_BUCKET:
+        return _MIN_BUCKET
+    step = 1 << max(0, (n - 1).bit_length() - 3)
+    return -(-n // step) * step
 
 
 def _global_array(a, sharding: NamedSharding):

@@ -134,9 +134,9 @@ def test_render_cli_reports_errors(tmp_path, capsys):
 # ----------------------------------------------------------------------------- `jaxsh fit`
 
 
-def _fit_capture(tmp_path, n_views=2, size=40, sigma=0.2):
+def _fit_capture(tmp_path, n_views=2, size=40, sigma=0.2, radius=1.0):
     """Render views of a manifest with `jaxsh render` (practical model), then blank lighting/BRDF for fitting."""
-    p, m = _write_manifest(tmp_path)
+    p, m = _write_manifest(tmp_path, geometry={"sphere": {"center": [0, 0, 0], "radius": radius}})
     m["brdf"]["sigma"] = sigma
     # a structured probe: the demo's area source and ground bounce (R&H's projection screen)
     disks, _ = solvers.default_sources()
@@ -176,6 +176,34 @@ def test_fit_recovers_brdf_with_known_lighting(tmp_path):
     re = jio.read_image(out / "view_001.exr")
     src = jio.read_image(tmp_path / "renders" / "view_001.exr")
     assert np.abs(re - src).max() < 1e-3 * np.abs(src).max()
+
+
+def test_fits_of_captures_in_one_size_bucket_compile_nothing_new(tmp_path):
+    """`jaxsh fit` pads the samples to a size bucket: a second object whose pixel count falls in the same bucket
+    reuses every compiled program of the first fit (in one process here; across runs, the compilation cache)."""
+    from solvers._scale import _size_bucket
+
+    from .helpers import Compiles
+
+    counts, results = [], []
+    # 48 x 48 views: a bucket (2,560 samples) that no other fit of this file uses, so the first fit compiles
+    for k, radius in enumerate((1.0, 0.98)):
+        d = tmp_path / f"c{k}"
+        d.mkdir()
+        p, m = _fit_capture(d, size=48, radius=radius)
+        m["brdf"] = None
+        p.write_text(json.dumps(m))
+        with Compiles() as c:
+            assert main(["fit", str(p), "--out", str(d / "fit")]) == 0
+        counts.append(c.names)
+        results.append(json.loads((d / "fit" / "result.json").read_text()))
+    n = [int(r["samples"]["total"]) for r in results]
+    assert n[0] != n[1] and _size_bucket(n[0]) == _size_bucket(n[1]) == 2560, n
+    assert any("_fit_brdf" in name for name in counts[0]) and counts[1] == [], counts[1]
+    for r in results:  # both fits recover the rendered material
+        assert r["status"] == "converged"
+        np.testing.assert_allclose(r["brdf"]["kd"], [0.3, 0.2, 0.1], rtol=1e-3)
+        assert abs(r["brdf"]["sigma"] - 0.2) < 1e-3
 
 
 def test_fit_factorizes_unknown_lighting_and_brdf(tmp_path):

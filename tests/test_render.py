@@ -305,7 +305,8 @@ def test_pixel_buckets_bound_the_padding():
     b = np.array([_pixel_bucket(int(n)) for n in sizes])
     assert np.all(b >= sizes) and np.all(b[sizes <= _MIN_PIXELS] == _MIN_PIXELS)
     assert np.all(b[sizes > _MIN_PIXELS] < 1.25 * sizes[sizes > _MIN_PIXELS])
-    assert len(set(b.tolist())) < 80  # eight buckets an octave above 1,024 pixels
+    for lo in (1024, 65536):  # four buckets an octave above 1,024 pixels (multiples of lo / 4)
+        assert sorted({_pixel_bucket(n) for n in range(lo + 1, 2 * lo + 1)}) == [lo + lo // 4 * j for j in range(1, 5)]
     assert _pixel_bucket(5000) == _pixel_bucket(4900) == 5120 and _pixel_bucket(262144) == 262144
 
 

@@ -17,8 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxsh
 import solvers
 from solvers.cli import main
+
+from .helpers import Compiles
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -150,6 +153,87 @@ def test_pad_observations_adds_weightless_finite_samples():
         solvers.shard_observations(obs, solvers.pixel_mesh(1), axis="batch")
     with pytest.raises(ValueError, match="`captures`"):
         solvers.fit_many([])
+
+
+def _sphere_obs(radius, size=24, seed=0):
+    """Two orthographic views of a Torrance-Sparrow sphere under a directional source (practical model)."""
+    cams = solvers.view_cameras(2, size)
+    gbs = [jaxsh.sphere_gbuffer(c, jnp.zeros(3), jnp.asarray(radius)) for c in cams]
+    brdf = solvers.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.3, 0.3]), jnp.asarray(1.6),
+                                   jnp.asarray(0.15))
+    light = solvers.Lighting(jnp.zeros((16, 3)).at[0].set(0.8), jnp.asarray([[0.3, 0.4, 0.866]]),
+                             jnp.asarray([[2.0, 2.0, 2.0]]))
+    rng = np.random.default_rng(seed)
+    imgs = [np.asarray(solvers.predict(brdf, light, g.normal, g.view, mask=g.mask)) * (1 + 0.01 * rng.normal(size=(size, size, 1)))
+            for g in gbs]
+    return solvers.observations(gbs, imgs), light
+
+
+def test_size_buckets_and_host_padding():
+    from solvers._scale import _size_bucket
+
+    for n in [0, 1, 1023, 1024]:
+        assert _size_bucket(n) == 1024
+    for lo in (1024, 65536):  # four buckets an octave (multiples of lo / 4)
+        assert sorted({_size_bucket(n) for n in range(lo + 1, 2 * lo + 1)}) == [lo + lo // 4 * j for j in range(1, 5)]
+    for n in [1025, 1500, 2047, 2049, 4097, 10**5 + 1, 127_584, 10**6]:
+        b = _size_bucket(n)
+        assert n <= b < 1.25 * n and _size_bucket(b) == b
+    obs, _ = _sphere_obs(1.0)
+    small, _ = _sphere_obs(0.95)
+    assert small.n_samples < obs.n_samples
+    p = solvers.pad_observations(obs, bucket=True)
+    assert p.n_samples == _size_bucket(obs.n_samples) > obs.n_samples
+    np.testing.assert_array_equal(np.asarray(p.weights)[obs.n_samples:], 0.0)
+    np.testing.assert_array_equal(np.asarray(p.values)[obs.n_samples:], 0.0)
+    np.testing.assert_array_equal(np.asarray(p.normals)[obs.n_samples:], np.broadcast_to(np.asarray(obs.normals)[0], (p.n_samples - obs.n_samples, 3)))
+    np.testing.assert_array_equal(np.asarray(p.normals)[: obs.n_samples], np.asarray(obs.normals))
+    assert isinstance(p.values, jax.Array) and p.values.dtype == obs.values.dtype
+    # on the host: another sample count compiles nothing
+    with Compiles() as c:
+        q = solvers.pad_observations(small, bucket=True)
+    assert c.names == [] and q.n_samples == _size_bucket(small.n_samples)
+    assert solvers.pad_observations(p, bucket=True) is p  # a bucket size is its own bucket
+    # float32 observations stay float32 (and int index arrays int)
+    o32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, small)
+    q32 = solvers.pad_observations(o32, bucket=True)
+    assert q32.values.dtype == q32.normals.dtype == jnp.float32 and q32.view_index.dtype == small.view_index.dtype
+    np.testing.assert_array_equal(np.asarray(q32.values)[: small.n_samples], np.asarray(o32.values))
+    with pytest.raises(ValueError, match="`size` or `bucket=True`"):
+        solvers.pad_observations(obs, size=p.n_samples, bucket=True)
+
+
+def test_captures_in_one_bucket_share_the_fits_programs():
+    """Padded to their bucket, captures of different sample counts reuse `fit_brdf`'s and `factorize`'s compiled
+    programs, and each padded fit is its unpadded fit (to the stopping tolerances: the sums are regrouped)."""
+    from solvers._scale import _size_bucket
+
+    obs_a, light = _sphere_obs(1.0)
+    obs_b, _ = _sphere_obs(0.97, seed=1)
+    assert obs_a.n_samples != obs_b.n_samples
+    assert _size_bucket(obs_a.n_samples) == _size_bucket(obs_b.n_samples)
+    pa, pb = (solvers.pad_observations(o, bucket=True) for o in (obs_a, obs_b))
+    jax.block_until_ready(solvers.fit_brdf(pa, light).brdf.kd)
+    jax.block_until_ready(solvers.factorize(pa, 6).brdf.kd)
+    with Compiles() as c:
+        fb = solvers.fit_brdf(pb, light)
+        fz = solvers.factorize(pb, 6)
+        jax.block_until_ready((fb.brdf.kd, fz.brdf.kd))
+    assert c.names == []
+    ref_b = solvers.fit_brdf(obs_b, light)
+    ref_z = solvers.factorize(obs_b, 6)
+    # fit_brdf to its stopping tolerances, factorize to its minimizers' resolution (see MINIMIZER_TOL)
+    for r, ref, tol in ((fb, ref_b, STOP_TOL), (fz, ref_z, MINIMIZER_TOL)):
+        assert solvers.status_name(r.status) == solvers.status_name(ref.status) == "converged"
+        for k in ("kd", "ks", "mu", "sigma"):
+            a, b = np.asarray(getattr(r.brdf, k)), np.asarray(getattr(ref.brdf, k))
+            assert np.max(np.abs(a - b)) <= tol * np.max(np.abs(b)), k
+        assert int(r.stats["n_obs"]) == int(ref.stats["n_obs"])  # the padding is not counted
+        f, f_ref = np.asarray(r.fitted)[: obs_b.n_samples], np.asarray(ref.fitted)
+        assert np.max(np.abs(f - f_ref)) <= tol * np.max(np.abs(f_ref))
+    # the fit itself is right: kd, ks, mu, sigma of the rendered sphere (1 % noise)
+    np.testing.assert_allclose(np.asarray(fb.brdf.kd), [0.5, 0.4, 0.3], rtol=0.05)
+    assert abs(float(fb.brdf.sigma) - 0.15) < 0.01
 
 
 def test_solver_blas_limit_applies_only_on_cpu(monkeypatch):
