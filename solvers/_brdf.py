@@ -69,7 +69,7 @@ class BRDFResult(Solution):
       and the simplex's and LM's own outcomes (`status_from_optimistix`).
     - `iterations`: simplex + LM steps.
     - `rms`: weighted RMS residual; `rel_rms`: `rms` / RMS of the data (never NaN).
-    - `texel_count`: `(T,)` samples per texel (textured fits), else `None`.
+    - `texel_count`: `(T,)` samples of positive weight per texel (textured fits), else `None`.
     - `fitted`: `(N, C)` the model at the estimate for every sample of `obs`,
       $K_d E + K_s S_{\\mu,\\sigma}$ (eq. 24; per-texel $K_d$, $K_s$ for
       textured fits), the values the residual compares with `obs.values`:
@@ -433,7 +433,8 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             return jax.ops.segment_sum(x, texel, num_segments=n_texels)
 
         dd = seg(w[:, None] * D * D)
-        counts = jax.ops.segment_sum(jnp.ones_like(w, dtype=jnp.int32), texel, num_segments=n_texels)
+        # samples of positive weight: weight-0 samples (invalid pixels, `pad_observations`' padding) observe nothing
+        counts = jax.ops.segment_sum((w > 0).astype(jnp.int32), texel, num_segments=n_texels)
         if textured == "kd_ks":
             ds, ss = seg(w[:, None] * D * S), seg(w[:, None] * S * S)
             v_kd, v_ks, okd = inverse_sym2_diag(dd, ds, ss)

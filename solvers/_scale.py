@@ -112,6 +112,8 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
     multiple = check_int(multiple, "multiple")
+    if not isinstance(bucket, bool):
+        raise ValueError(f"`bucket` must be True or False, got {bucket!r}")
     if bucket and size is not None:
         raise ValueError("give `size` or `bucket=True`, not both")
     n = obs.n_samples
@@ -123,8 +125,7 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     if pad == 0:
         return obs
     arrays = [getattr(obs, f) for f in _PIXEL_FIELDS]
-    host = all(a is None or (not isinstance(a, jax.core.Tracer) and getattr(a, "is_fully_addressable", True)
-                             and len(getattr(a, "devices", lambda: ())()) <= 1) for a in arrays)
+    host = all(a is None or isinstance(a, np.ndarray) or _on_one_cpu(a) for a in arrays)
 
     def grow(name, a):
         if a is None:
@@ -140,6 +141,14 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
         return jnp.concatenate([jnp.asarray(a), extra])
 
     return Observations(*(grow(f, a) for f, a in zip(_PIXEL_FIELDS, arrays)), obs.image_shapes, obs.n_texels)
+
+
+def _on_one_cpu(a) -> bool:
+    """A concrete array on one CPU device: padded on the host (not a tracer, not sharded, not on an accelerator)."""
+    if isinstance(a, jax.core.Tracer) or not isinstance(a, jax.Array) or not a.is_fully_addressable:
+        return False
+    devices = a.devices()
+    return len(devices) == 1 and next(iter(devices)).platform == "cpu"
 
 
 _MIN_BUCKET = 1024

@@ -196,6 +196,29 @@ def test_per_texel_result_into_predict():
         solvers.predict(res.brdf, new, g.normal, g.view, texel=bad)
 
 
+def test_texel_counts_are_samples_of_positive_weight():
+    """`texel_count` counts the samples that observe a texel: weight-0 samples (invalid pixels, the padding of
+    `pad_observations`) do not, so a padded fit reports the unpadded counts, and a texel seen only by weight-0
+    samples is unobserved (count 0, infinite standard error)."""
+    g = _sphere(32)
+    mask = np.asarray(g.mask)
+    texel = np.broadcast_to((np.arange(32) // 8)[None, :], (32, 32)).astype(np.int32)
+    kd_t = np.array([[0.5, 0.4, 0.3], [0.2, 0.6, 0.3], [0.7, 0.1, 0.1], [0.3, 0.3, 0.6]])
+    lights = [_one_light(d) for d in _lights(4)]
+    imgs = [np.asarray(jaxsh.render_practical(g.normal, g.view, kd_t[texel], TRUE.ks, TRUE.mu, TRUE.sigma,
+                                              fast_directions=lit.fast_directions, fast_energy=lit.fast_energy,
+                                              mask=g.mask).total) for lit in lights]
+    weight = (texel != 0).astype(float)  # texel 0 has object pixels, all of weight 0
+    obs = solvers.observations([g] * 4, imgs, texel=[texel] * 4, weights=[weight] * 4)
+    want = np.array([4 * np.count_nonzero(mask & (texel == t) & (weight > 0)) for t in range(4)])
+    assert want[0] == 0 and np.all(want[1:] > 0) and np.count_nonzero(mask & (texel == 0)) > 0
+    for o in (obs, solvers.pad_observations(obs, bucket=True)):
+        res = solvers.fit_brdf(o, lights, textured="kd")
+        np.testing.assert_array_equal(np.asarray(res.texel_count), want)
+        assert np.isinf(float(np.asarray(res.std_errors.kd)[0, 0]))
+        np.testing.assert_allclose(np.asarray(res.brdf.kd)[1:], kd_t[1:], rtol=1e-6)
+
+
 def test_fit_brdf_sh_per_view_lighting(rng):
     gbs = _views(rng, 2)
     sh = rng.normal(size=(9, 3)) * 0.3

@@ -201,6 +201,8 @@ def test_size_buckets_and_host_padding():
     np.testing.assert_array_equal(np.asarray(q32.values)[: small.n_samples], np.asarray(o32.values))
     with pytest.raises(ValueError, match="`size` or `bucket=True`"):
         solvers.pad_observations(obs, size=p.n_samples, bucket=True)
+    with pytest.raises(ValueError, match="`bucket` must be True or False"):
+        solvers.pad_observations(obs, bucket="yes")
 
 
 def test_captures_in_one_bucket_share_the_fits_programs():
