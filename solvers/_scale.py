@@ -193,6 +193,8 @@ def shard_observations(obs: Observations, mesh: Mesh, axis: str = "pixels") -> O
 
 
 def _bucket(n: int, min_bucket: int) -> int:
+    # `fit_many`'s buckets are powers of two, coarser than `_size_bucket`'s: the captures of one bucket are stacked
+    # and vmapped together, so fewer buckets mean fewer, larger batches
     return max(min_bucket, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
