@@ -204,13 +204,13 @@ def test_texel_counts_are_samples_of_positive_weight():
     mask = np.asarray(g.mask)
     texel = np.broadcast_to((np.arange(32) // 8)[None, :], (32, 32)).astype(np.int32)
     kd_t = np.array([[0.5, 0.4, 0.3], [0.2, 0.6, 0.3], [0.7, 0.1, 0.1], [0.3, 0.3, 0.6]])
-    lights = [_one_light(d) for d in _lights(4)]
+    lights = [_one_light(d) for d in _lights(6)]  # the shapes of the test above: its compiled fit serves here
     imgs = [np.asarray(jaxsh.render_practical(g.normal, g.view, kd_t[texel], TRUE.ks, TRUE.mu, TRUE.sigma,
                                               fast_directions=lit.fast_directions, fast_energy=lit.fast_energy,
                                               mask=g.mask).total) for lit in lights]
     weight = (texel != 0).astype(float)  # texel 0 has object pixels, all of weight 0
-    obs = solvers.observations([g] * 4, imgs, texel=[texel] * 4, weights=[weight] * 4)
-    want = np.array([4 * np.count_nonzero(mask & (texel == t) & (weight > 0)) for t in range(4)])
+    obs = solvers.observations([g] * 6, imgs, texel=[texel] * 6, weights=[weight] * 6)
+    want = np.array([6 * np.count_nonzero(mask & (texel == t) & (weight > 0)) for t in range(4)])
     assert want[0] == 0 and np.all(want[1:] > 0) and np.count_nonzero(mask & (texel == 0)) > 0
     for o in (obs, solvers.pad_observations(obs, bucket=True)):
         res = solvers.fit_brdf(o, lights, textured="kd")
