@@ -41,6 +41,7 @@ bench: $(BIN)/python
 	$(BIN)/python benchmarks/bench_inverse.py
 	$(BIN)/python benchmarks/bench_capture.py
 	$(BIN)/python benchmarks/bench_scale.py
+	$(BIN)/python benchmarks/bench_gpu.py
 	$(BIN)/python benchmarks/bench_cold.py
 
 clean:
