@@ -13,6 +13,9 @@ project_latlong, render_practical, fit_brdf, factorize). docs/performance.md has
 These are options of each compiled program (`jax.jit(..., compiler_options=...)`), not of the
 process: nothing global changes, and a program the user jits is compiled as the user says.
 
+Matrix products are traced at full precision (`_full_precision`), so float32 stays float32 on a GPU
+rather than TF32; and `by_platform` picks a kernel's form for the platform a program is compiled for.
+
 `jit(..., optimize=False)` adds XLA's backend optimization level 0 (XLA's default is 3) for a program
 that runs once per call and briefly, where the compilation is most of what the user waits for:
 `solvers.factorize`'s `_golden_batch`, `_lighting_and_source` and `_refine_final` compile in 1.9 s less
@@ -74,6 +77,44 @@ def _checked_optimize(optimize):
     return optimize
 
 
+def by_platform(*args, cpu, other):
+    """`cpu(*args)` in a program compiled for a CPU, `other(*args)` in one compiled for another platform (GPU).
+
+    For kernels whose best form differs: a loop over cache-sized chunks on a CPU is thousands of small kernel
+    launches on a GPU. `jax.lax.platform_dependent` makes the choice when the program is lowered for its
+    device (arrays committed to the CPU on a GPU machine get the CPU form). In a process whose default
+    backend is the CPU, no other platform can be lowered for, so only `cpu` is traced (tracing both cost a
+    first `real_sh` call about 50 ms).
+    """
+    if jax.default_backend() == "cpu":
+        return cpu(*args)
+    return jax.lax.platform_dependent(*args, cpu=cpu, default=other)
+
+
+def _full_precision(fun):
+    """`fun` traced with `jax.default_matmul_precision("highest")` unless the user chose a precision.
+
+    JAX's default precision lets an accelerator compute float32 matrix products in a reduced format:
+    NVIDIA GPUs use TF32 (a 10-bit mantissa), so a float32 product carries relative errors near 1e-3 rather
+    than 1e-7. Measured on an H200 (docs/performance.md, "Seventeenth round"): `render_reference`'s pairwise
+    form in float32 off by 0.15-1.6 % against its 2e-4 bound, the float32 RBF evaluation 7x over its bound
+    (3.7e-3 against 5e-4), the float32 reflectance-sharing fit 1.3x over. jaxsh's float32 accuracy is the
+    same on every platform: its programs trace their products at full precision. The setting is read when a
+    program is traced, so it applies inside the program only (no global flag changes), and a precision the
+    user set (`jax_default_matmul_precision`, globally or in a `with` block around the call) is kept. On a
+    CPU every precision computes the same numbers (float32 and float64 products are exact-format there).
+    """
+
+    @functools.wraps(fun)
+    def traced(*args, **kwargs):
+        if jax.config.jax_default_matmul_precision is not None:  # the user's choice, or an enclosing program's
+            return fun(*args, **kwargs)
+        with jax.default_matmul_precision("highest"):
+            return fun(*args, **kwargs)
+
+    return traced
+
+
 class _LazyJit:
     """`eqx.filter_jit(fun)`, compiled with `compile_options()` when it is the outermost program.
 
@@ -93,8 +134,9 @@ class _LazyJit:
     def _versions(self):
         if self._plain is None:
             opts = compile_options(self._optimize)
-            self._tuned = eqx.filter_jit(self._fun, compiler_options=opts, **self._kwargs) if opts else None
-            self._plain = eqx.filter_jit(self._fun, **self._kwargs)
+            fun = _full_precision(self._fun)
+            self._tuned = eqx.filter_jit(fun, compiler_options=opts, **self._kwargs) if opts else None
+            self._plain = eqx.filter_jit(fun, **self._kwargs)
         return self._plain, self._tuned
 
     def __call__(self, *args, **kwargs):
@@ -120,6 +162,8 @@ def jit(fun=None, *, optimize: bool = True, **kwargs):
     `equinox.filter_jit`. Every jitted program of jaxsh and of `solvers` is made this way.
     `optimize=False`: compiled with `compile_options(optimize=False)` (XLA's backend optimization
     level 0), for a program whose compilation costs far more than its run (module docstring).
+    Matrix products are traced at full precision unless the user set `jax_default_matmul_precision`
+    (`_full_precision`: float32 means float32 on a GPU too, not TF32).
     """
     _checked_optimize(optimize)
     if fun is None:

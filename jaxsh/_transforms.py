@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
-from ._compile import jit
+from ._compile import by_platform, jit
 from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_positive_int, coeff_layout
 from ._grids import fejer1_weights, latlong_angles
 from ._indexing import sh_degrees, sh_orders
@@ -201,7 +201,9 @@ def _row_dft_matmul(f, lmax: int):
         re, im = jnp.concatenate(res, axis=0), jnp.concatenate(ims, axis=0)
         return re[inv], im[inv]
 
-    return jax.lax.map(row, f.reshape(h, big_r, b * c))
+    # One row at a time on a CPU (each row's product in cache; measured fastest there, docs/performance.md);
+    # on other platforms (GPU) all rows as one batched product, not H sequential steps of small kernels.
+    return by_platform(f.reshape(h, big_r, b * c), cpu=lambda x: jax.lax.map(row, x), other=jax.vmap(row))
 
 
 @jit

@@ -41,6 +41,14 @@ def tol(dtype, x64=1e-10, x32=1e-4):
     return x64 if np.dtype(dtype) == np.float64 else x32
 
 
+def accelerator_branches(monkeypatch):
+    """Trace `jaxsh._compile.by_platform` as for a GPU: its `other` branch (a CPU program never lowers it)."""
+    import jax
+
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax.lax, "platform_dependent", lambda *args, default, **branches: default(*args))
+
+
 def random_dirs(rng, shape):
     d = rng.normal(size=tuple(shape) + (3,))
     return d / np.linalg.norm(d, axis=-1, keepdims=True)

@@ -225,3 +225,45 @@ def test_a_second_call_with_new_values_compiles_nothing(name):
         out = fun(*second)
         jax.block_until_ready(out)
     assert c.names == [], c.names
+
+
+def _dot_precisions(text):
+    """The `precision = [...]` of every `stablehlo.dot_general` in a lowered program's text."""
+    out = []
+    for line in text.splitlines():
+        if "stablehlo.dot_general" in line:
+            out.append(line.split("precision = [")[1].split("]")[0] if "precision = [" in line else "none")
+    return out
+
+
+def test_float32_products_are_traced_at_full_precision():
+    """float32 matrix products ask for full precision, so an accelerator does not round them to TF32.
+
+    On an H200 (docs/performance.md, "Seventeenth round") JAX's default precision let the float32 RBF
+    evaluation, the float32 sharing fit and the float32 pairwise reference renderer miss their documented
+    accuracy by 10-100x. Checked here on the lowered programs (the CPU computes the same numbers at any
+    precision): a jaxsh program alone, staged into the caller's `jit`, and a solver's program; and a
+    precision the user set is kept.
+    """
+    rng = np.random.default_rng(0)
+    c = jnp.asarray(rng.uniform(-1, 1, size=(50, 5)), jnp.float32)
+    model = jaxsh.RBFModel(c, jnp.asarray(rng.normal(size=(50, 3)), jnp.float32),
+                           jnp.asarray(rng.normal(size=(6, 3)), jnp.float32))
+    x = jnp.asarray(rng.uniform(-1, 1, size=(40, 5)), jnp.float32)
+    inside = _dot_precisions(jax.jit(lambda m, x: m(x)).lower(model, x).as_text())
+    assert inside and all(p == "HIGHEST, HIGHEST" for p in inside), inside
+
+    @jaxsh.jit
+    def gram(a):
+        return a.T @ a, jnp.einsum("ij,ik->jk", a, a)
+
+    alone = _dot_precisions(gram.lower(x).as_text())
+    assert len(alone) == 2 and all(p == "HIGHEST, HIGHEST" for p in alone), alone
+    d = jnp.asarray(rng.normal(size=(30, 3)), jnp.float32)
+    fit = _dot_precisions(jax.jit(lambda d, v: jaxsh.fit_sh(d, v, 4)).lower(d, d[:, 0]).as_text())
+    assert fit and all(p == "HIGHEST, HIGHEST" for p in fit), fit
+    with jax.default_matmul_precision("bfloat16"):  # the user's choice wins
+        theirs = _dot_precisions(gram.lower(x).as_text())
+    assert len(theirs) == 2 and all(p != "HIGHEST, HIGHEST" for p in theirs), theirs
+    np.testing.assert_allclose(np.asarray(gram(x)[0]), np.asarray(x, np.float64).T @ np.asarray(x, np.float64),
+                               rtol=2e-6)

@@ -9,7 +9,7 @@ from hypothesis import given, strategies as st
 
 import jaxsh
 
-from .helpers import primitives, random_dirs, scipy_complex_sh, scipy_real_sh
+from .helpers import accelerator_branches, primitives, random_dirs, scipy_complex_sh, scipy_real_sh
 
 
 # ---------------------------------------------------------------- indexing
@@ -396,3 +396,22 @@ def test_zero_or_nonfinite_direction_raises(bad, dtype):
         jax.jit(lambda v: jaxsh.real_sh(v, 2))(d).block_until_ready()
     d[617] = [1e-3, 0.0, 0.0]  # short but non-zero: fine
     assert np.all(np.isfinite(np.asarray(jaxsh.real_sh(d, 2))))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_real_sh_accelerator_branch(monkeypatch, rng, dtype):
+    """Off the CPU, `real_sh` runs its loop over l on all points at once instead of 128-point chunks (an H200
+    took 2.5 s in chunks, 22 ms at once, at 10⁶ directions): the same values, checked here against scipy."""
+    from jaxsh._sh import _real_sh_flat, _unit_vectors
+
+    d = random_dirs(rng, (1000,))
+    d[:2] = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]
+    d = d.astype(dtype)
+    cpu = [np.asarray(jax.jit(lambda x: _real_sh_flat(_unit_vectors(x), 12, cf))(d)) for cf in (False, True)]
+    accelerator_branches(monkeypatch)
+    acc = [np.asarray(jax.jit(lambda x: _real_sh_flat(_unit_vectors(x), 12, cf))(d)) for cf in (False, True)]
+    tol = 1e-14 if dtype == np.float64 else 1e-6
+    np.testing.assert_allclose(acc[0], cpu[0], rtol=0, atol=tol)
+    np.testing.assert_allclose(acc[1], acc[0].T, rtol=0, atol=0)
+    np.testing.assert_allclose(acc[0], scipy_real_sh(d.astype(np.float64), 12), rtol=0,
+                               atol=1e-12 if dtype == np.float64 else 3e-6)
