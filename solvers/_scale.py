@@ -103,7 +103,8 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     zero radiance and zero weight: it adds nothing to any weighted sum, and
     the solvers count only samples of positive weight. The results equal the
     unpadded ones to rounding (the sums are grouped differently). Outside jit;
-    concrete single-device arrays are padded on the host (an eager JAX
+    concrete single-device arrays (CPU or GPU) are padded on the host, each
+    put back on its own device if it was committed there (an eager JAX
     concatenation would compile a program for each new count).
     Note that `to_images` of a padded `Observations` would also write the
     padded samples (onto sample 0's pixel): scatter `values[:obs.n_samples]`
@@ -125,15 +126,17 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     if pad == 0:
         return obs
     arrays = [getattr(obs, f) for f in _PIXEL_FIELDS]
-    host = all(a is None or isinstance(a, np.ndarray) or _on_one_cpu(a) for a in arrays)
+    host = all(a is None or isinstance(a, np.ndarray) or _one_device(a) is not None for a in arrays)
 
     def grow(name, a):
         if a is None:
             return None
         if host:
+            # back where it was: on its device if committed there, else uncommitted (the default device)
+            dev = _one_device(a) if isinstance(a, jax.Array) and a.committed else None
             a = np.asarray(a)
             extra = np.zeros((pad,) + a.shape[1:], a.dtype) if name in ("values", "weights") else np.repeat(a[:1], pad, 0)
-            return jax.device_put(np.concatenate([a, extra]))  # a new array: `device_put` may alias it (CPU)
+            return jax.device_put(np.concatenate([a, extra]), dev)  # a new array: `device_put` may alias it (CPU)
         if name in ("values", "weights"):
             extra = jnp.zeros((pad,) + a.shape[1:], a.dtype)
         else:
@@ -143,12 +146,15 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     return Observations(*(grow(f, a) for f, a in zip(_PIXEL_FIELDS, arrays)), obs.image_shapes, obs.n_texels)
 
 
-def _on_one_cpu(a) -> bool:
-    """A concrete array on one CPU device: padded on the host (not a tracer, not sharded, not on an accelerator)."""
+def _one_device(a):
+    """The device of a concrete array on one device, any platform (padded on the host); None for a tracer or a
+    sharded array (padded by JAX). On a GPU too: the copy to the host and back takes milliseconds, where the
+    eager `jnp` padding compiles about nine small programs for each new sample count (0.16 s each on an H200,
+    docs/performance.md, "Seventeenth round")."""
     if isinstance(a, jax.core.Tracer) or not isinstance(a, jax.Array) or not a.is_fully_addressable:
-        return False
+        return None
     devices = a.devices()
-    return len(devices) == 1 and next(iter(devices)).platform == "cpu"
+    return next(iter(devices)) if len(devices) == 1 else None
 
 
 _MIN_BUCKET = 1024

@@ -199,6 +199,13 @@ def test_size_buckets_and_host_padding():
     q32 = solvers.pad_observations(o32, bucket=True)
     assert q32.values.dtype == q32.normals.dtype == jnp.float32 and q32.view_index.dtype == small.view_index.dtype
     np.testing.assert_array_equal(np.asarray(q32.values)[: small.n_samples], np.asarray(o32.values))
+    # arrays committed to a device go back to it (on a GPU machine, CPU-placed observations stay on the CPU);
+    # uncommitted ones stay uncommitted (the default device)
+    cpu = jax.devices("cpu")[0]
+    on_cpu = solvers.pad_observations(jax.device_put(small, cpu), bucket=True)
+    assert on_cpu.values.committed and on_cpu.values.devices() == {cpu} and on_cpu.normals.committed
+    assert not q.values.committed and q.values.devices() == {jax.devices()[0]}
+    np.testing.assert_array_equal(np.asarray(on_cpu.normals), np.asarray(q.normals))
     with pytest.raises(ValueError, match="`size` or `bucket=True`"):
         solvers.pad_observations(obs, size=p.n_samples, bucket=True)
     with pytest.raises(ValueError, match="`bucket` must be True or False"):
@@ -250,13 +257,18 @@ def test_solver_blas_limit_applies_only_on_cpu(monkeypatch):
 
     outside = blas_threads()
     inner = blas_single_thread(blas_threads)
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")  # as on a machine without a GPU
     assert all(t == 1 for t in inner())  # CPU backend: OpenBLAS limited to one thread inside a solver
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert inner() == outside  # a GPU run leaves the host BLAS alone
 
 
-@pytest.mark.skipif(not any(d.platform == "gpu" for d in jax.devices()) if jax.default_backend() == "gpu" else True,
-                    reason="needs a CUDA device (pip install 'jaxsh[cuda]')")
+_NEEDS_GPU = pytest.mark.skipif(
+    not any(d.platform == "gpu" for d in jax.devices()) if jax.default_backend() == "gpu" else True,
+    reason="needs a CUDA device (pip install 'jaxsh[cuda]'; benchmarks/gpu_checks.sh)")
+
+
+@_NEEDS_GPU
 def test_gpu_sharded_fit_matches_cpu():  # pragma: no cover - runs only with a GPU
     from tests._scale_worker import make_capture
 
@@ -266,6 +278,32 @@ def test_gpu_sharded_fit_matches_cpu():  # pragma: no cover - runs only with a G
         cpu = solvers.fit_brdf(jax.device_put(obs, jax.devices("cpu")[0]), lighting)
     assert solvers.status_name(gpu.status) == "converged"
     np.testing.assert_allclose(float(gpu.brdf.sigma), float(cpu.brdf.sigma), rtol=1e-8)
+
+
+@_NEEDS_GPU
+def test_gpu_kernels_and_float32_products_match_cpu():  # pragma: no cover - runs only with a GPU
+    """On the GPU: `real_sh` and `project_latlong` in their GPU forms equal the CPU's, and float32 products are
+    float32, not TF32 (docs/performance.md, "Seventeenth round": the float32 RBF evaluation was 7x over its bound)."""
+    from tests.test_rbf import _brute
+
+    gpu, cpu = jax.devices("gpu")[0], jax.devices("cpu")[0]
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((20_000, 3))
+    for dt, tol in ((np.float64, 1e-12), (np.float32, 3e-6)):
+        a = jaxsh.real_sh(jax.device_put(d.astype(dt), gpu), 16)
+        b = jaxsh.real_sh(jax.device_put(d.astype(dt), cpu), 16)
+        assert a.devices() == {gpu} and b.devices() == {cpu} and a.dtype == dt
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=tol)
+    img = rng.random((128, 256, 3))
+    a, b = (jaxsh.project_latlong(jax.device_put(img, dev), 32) for dev in (gpu, cpu))
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+    c, w, p = rng.uniform(-1, 1, size=(200, 5)), rng.normal(size=(200, 3)) * 0.1, rng.normal(size=(6, 3))
+    x = rng.uniform(-1, 1, size=(500, 5))
+    f32 = [jax.device_put(jnp.asarray(v, jnp.float32), gpu) for v in (c, w, p, x)]
+    out = jaxsh.RBFModel(*f32[:3])(f32[3])
+    assert out.devices() == {gpu}
+    np.testing.assert_allclose(np.asarray(out, np.float64), _brute(c, w, p, x, np.ones(5)),
+                               rtol=0, atol=1e-5 * np.abs(w).sum(0).max() * 3)  # test_rbf's float32 bound
 
 
 @pytest.mark.slow  # two fits here plus a 4-device process (~3 min on a loaded 2-core machine): make test-all

@@ -207,9 +207,13 @@ def test_render_only_masked_pixels(rng):
     ref, ok = _full_render(lambda q: np.maximum(np.asarray(m.fit(q.reshape(-1, 5))), 0.0).reshape(q.shape[:-1] + (2,)),
                            normal, light, mask, xy, 1.5)
     assert 0 < ok.sum() < ok.size and np.abs(pred).max() > 0
-    np.testing.assert_allclose(pred, ref, rtol=1e-12, atol=1e-14)
+    # rounding only: the RBF sums are evaluated over other batches (gathered pixels / all pixels), so a pixel
+    # where the sum cancels carries the rounding of its terms, which are of the size of the largest values:
+    # an H200 gave 3.1e-14 at a value of 0.013 (largest value 8.6), a CPU 1.4e-13 at larger ones
+    atol = 1e-14 * np.abs(ref).max()
+    np.testing.assert_allclose(pred, ref, rtol=1e-12, atol=atol)
     traced = jax.jit(lambda mm: m.render(normal, Z.VIEW, light, irradiance=1.5, mask=mm, xy=xy))(mask)
-    np.testing.assert_allclose(np.asarray(traced), ref, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(traced), ref, rtol=1e-12, atol=atol)
     empty = np.asarray(m.render(normal, Z.VIEW, light, mask=np.zeros_like(mask), xy=xy))
     assert empty.shape == ref.shape and np.all(empty == 0.0)
     nothing = m.render(normal[:0], Z.VIEW, light, mask=mask[:0], xy=xy[:0])  # a frame of no pixels
