@@ -5,7 +5,13 @@
 #   bash benchmarks/gpu_checks.sh [OUTDIR]      (default: gpu_out; $OUT if set)
 #
 # jaxsh is used from the checkout (PYTHONPATH), not installed. Packages that the machine lacks can be
-# given as wheels in .whl/ (installed with --no-deps into a temporary folder first). Steps, each with its
+# given as wheels in .whl/ (installed with --no-deps into a temporary folder first). For a machine without
+# network whose image has JAX for CUDA, equinox, optimistix, lineax, jaxtyping, scipy, pytest, hypothesis
+# (session 23's H200), these were enough, fetched elsewhere for its Python (3.12 there):
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+#     -d .whl jaxopt trimesh embreex OpenImageIO beartype jsonschema jsonschema-specifications referencing rpds-py
+# Steps, each with its
 # own time limit (seconds; JAXSH_GPU_BUDGET bounds the whole run, default 420; JAXSH_GPU_STEPS, a list of the
 # step names below, runs only those):
 #   1. machine: GPU, driver, JAX and the packages' versions;
