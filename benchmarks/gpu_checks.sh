@@ -11,9 +11,8 @@
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
 #     --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
 #     -d .whl jaxopt trimesh embreex OpenImageIO beartype jsonschema jsonschema-specifications referencing rpds-py
-# Steps, each with its
-# own time limit (seconds; JAXSH_GPU_BUDGET bounds the whole run, default 420; JAXSH_GPU_STEPS, a list of the
-# step names below, runs only those):
+# Steps, each with its own time limit (seconds; JAXSH_GPU_BUDGET bounds the whole run, default 420;
+# JAXSH_GPU_STEPS, a list of the step names below, runs only those):
 #   1. machine: GPU, driver, JAX and the packages' versions;
 #   2. gpu_tests: the tests that need a GPU (tests/test_scale.py: the sharded fit on the GPU equals the CPU's; the
 #      host BLAS limit stays off the GPU path);
