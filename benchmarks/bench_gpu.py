@@ -12,8 +12,8 @@ Workloads (float64 unless marked):
 - `project_latlong` of a 1024 × 2048 × 3 map to lmax 32;
 - `rotate_sh` of 10⁴ lmax-8 vectors, each by its own rotation;
 - `render_practical` of a 512² sphere (lmax-12 sky plus a sun);
-- `inverse_lighting` and `factorize` (l* = 12, `bench_inverse.LSTAR`) and `fit_brdf` on `bench_inverse.py`'s capture (3 views of
-  `--size`² rendered with the reference renderer, 1 % noise).
+- `fit_brdf`, `inverse_lighting` and `factorize` (l* = 12, `bench_inverse.LSTAR`) on `bench_inverse.py`'s
+  capture (3 views of `--size`² rendered with the reference renderer, 1 % noise).
 
     python benchmarks/bench_gpu.py [--size 256] [--json out.json] [--dry-run]
 
