@@ -41,6 +41,7 @@ __all__ = [
     "read_image",
     "read_image_info",
     "read_radiance",
+    "read_mask",
     "write_image",
     "write_json",
     "atomic_output",
@@ -53,6 +54,7 @@ __all__ = [
     "read_mesh",
     "ManifestError",
     "ENCODINGS",
+    "ALPHA_MODES",
     "Y_UP_TO_Z_UP",
 ]
 
@@ -79,26 +81,80 @@ def _check_readable(path: str, what: str = "image") -> None:
         raise IsADirectoryError(f"{path}: is a directory, expected a file ({what})")
 
 
+# EXIF/TIFF `Orientation` (1-8): how the stored rows and columns map to the image as displayed. Each entry turns
+# the stored array into the displayed one; 5-8 swap the axes. (OpenImageIO reports the tag and never applies it
+# when reading: `ImageBufAlgo.reorient` does, and tests/test_io.py checks these against it.)
+_ORIENT = {
+    1: lambda a: a,
+    2: lambda a: a[:, ::-1],  # mirrored left-right
+    3: lambda a: a[::-1, ::-1],  # rotated 180 degrees
+    4: lambda a: a[::-1],  # mirrored top-bottom (e.g. a Radiance file whose header says "+Y H +X W")
+    5: lambda a: np.swapaxes(a, 0, 1),  # transposed
+    6: lambda a: np.swapaxes(a, 0, 1)[:, ::-1],  # stored rotated 90 degrees counter-clockwise: turn clockwise
+    7: lambda a: np.swapaxes(a, 0, 1)[::-1, ::-1],  # transverse
+    8: lambda a: np.swapaxes(a, 0, 1)[::-1],  # stored rotated 90 degrees clockwise: turn counter-clockwise
+}
+
+
+def _layout(path: str, spec) -> dict:
+    """Where the displayed image lies in the stored pixels: the display window's rows and columns inside the data
+    window, and the orientation. Raises `ValueError` naming the file when the data window does not cover the display
+    window (pixels the file does not hold) or the orientation is not 1-8."""
+    orient = int(spec.get_int_attribute("Orientation", 1))
+    if orient not in _ORIENT:
+        raise ValueError(f"image {path!r}: unsupported orientation {orient} (the EXIF/TIFF tag holds 1-8)")
+    x0, y0, w, h = int(spec.x), int(spec.y), int(spec.width), int(spec.height)
+    fx, fy, fw, fh = int(spec.full_x), int(spec.full_y), int(spec.full_width), int(spec.full_height)
+    if fw <= 0 or fh <= 0:  # formats without a display window
+        fx, fy, fw, fh = x0, y0, w, h
+    if not (x0 <= fx and y0 <= fy and fx + fw <= x0 + w and fy + fh <= y0 + h):
+        raise ValueError(
+            f"image {path!r}: its data window ({w}x{h} at ({x0}, {y0})) does not cover its display window "
+            f"({fw}x{fh} at ({fx}, {fy})): the file does not hold every pixel of the image; write it with the "
+            "data window covering the display window")
+    rows, cols = slice(fy - y0, fy - y0 + fh), slice(fx - x0, fx - x0 + fw)
+    size = (fh, fw) if orient <= 4 else (fw, fh)
+    return {"rows": rows, "cols": cols, "orientation": orient, "height": size[0], "width": size[1]}
+
+
+def _open(path: str):
+    """An `ImageInput` that returns pixels as stored: OpenImageIO would otherwise multiply the colour of PNG/TIFF
+    files by their (unassociated) alpha while reading. PFM files store their scanlines bottom to top; `pnm:pfmflip`
+    returns them top first (OpenImageIO 3.2 does that by default only when a configuration is passed, as here)."""
+    oiio = _oiio()
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    config.attribute("pnm:pfmflip", 1)
+    inp = oiio.ImageInput.open(path, config)
+    if inp is None:
+        raise ValueError(f"cannot read image {path!r}: {oiio.geterror()}")
+    return inp
+
+
 def read_image_info(path) -> dict:
     """The header of an image file, without reading its pixels.
 
-    **Returns:** `{"width", "height", "channels", "float": bool, "max_code": int | None, "bits": int}`:
-    `float` is true for half/float/double pixels (linear values), `max_code`
-    is 255 or 65535 for 8/16-bit integer pixels (None for float files).
+    **Returns:** `{"width", "height", "channels", "float": bool, "max_code": int | None, "bits": int,
+    "alpha": bool, "orientation": int}`: `width` and `height` are those of the image as displayed (the file's
+    display window, turned by its orientation tag, as `read_image` returns it); `float` is true for
+    half/float/double pixels (linear values); `max_code` is 255 or 65535 for 8/16-bit integer pixels (None for
+    float files); `alpha` says whether one channel is alpha (OpenImageIO's `alpha_channel`, e.g. the `A` of
+    RGBA or grey+alpha); `orientation` is the EXIF/TIFF tag (1 when absent).
     Raises `FileNotFoundError` / `ValueError` naming the file.
     """
     path = os.fspath(path)
     _check_readable(path)
     oiio = _oiio()
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise ValueError(f"cannot read image {path!r}: {oiio.geterror()}")
+    inp = _open(path)
     try:
         spec = inp.spec()
         base = spec.format.basetype
+        lay = _layout(path, spec)
+        alpha = int(spec.alpha_channel) >= 0
     finally:
         inp.close()
-    info = {"width": int(spec.width), "height": int(spec.height), "channels": int(spec.nchannels)}
+    info = {"width": lay["width"], "height": lay["height"], "channels": int(spec.nchannels), "alpha": alpha,
+            "orientation": lay["orientation"]}
     if base in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
         bits = {oiio.HALF: 16, oiio.FLOAT: 32, oiio.DOUBLE: 64}[base]
         return {**info, "float": True, "max_code": None, "bits": bits}
@@ -110,13 +166,17 @@ def read_image_info(path) -> dict:
 
 
 def _read_pixels(path: str):
-    """(float32 (H, W, C) array — integer codes divided by their maximum —, header info)."""
+    """(float32 (H, W, C) array — integer codes divided by their maximum —, header info).
+
+    The values are as stored (never multiplied by alpha), the rows and columns those of the image as displayed:
+    the display window cut from the data window, then the orientation tag applied (`_layout`). Alpha, if any, is
+    the channel `alpha_channel` of the file's spec, returned in its place."""
     info = read_image_info(path)
-    oiio = _oiio()
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise ValueError(f"cannot read image {path!r}: {oiio.geterror()}")
+    inp = _open(path)
     try:
+        spec = inp.spec()
+        lay = _layout(path, spec)
+        alpha_channel = int(spec.alpha_channel)
         data = inp.read_image("float")
         if data is None:
             raise ValueError(f"cannot read image {path!r}: {inp.geterror()}")
@@ -125,11 +185,8 @@ def _read_pixels(path: str):
     arr = np.asarray(data, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
-    if os.path.splitext(path)[1].lower() == ".pfm":
-        # PFM stores scanlines bottom to top; OpenImageIO 3.2 returns them in
-        # file order (its writer is conformant), so flip to top-to-bottom here.
-        arr = arr[::-1].copy()
-    return arr, info
+    arr = np.ascontiguousarray(_ORIENT[lay["orientation"]](arr[lay["rows"], lay["cols"]]))
+    return arr, {**info, "alpha_channel": alpha_channel}
 
 
 def _check_encoding(path: str, encoding, info: dict) -> str:
@@ -149,6 +206,16 @@ def _check_encoding(path: str, encoding, info: dict) -> str:
     return encoding
 
 
+def _decode(arr, enc: str, alpha_channel: int):
+    """sRGB-decode the colour channels (alpha is a coverage, scaled linearly, never through a transfer curve)."""
+    if enc != "srgb":
+        return arr
+    out = _srgb_to_linear(arr)
+    if alpha_channel >= 0:
+        out[..., alpha_channel] = arr[..., alpha_channel]
+    return out
+
+
 def read_image(path, encoding: str | None = None) -> np.ndarray:
     """Read an image as float32 `(H, W, C)` linear values.
 
@@ -164,24 +231,51 @@ def read_image(path, encoding: str | None = None) -> np.ndarray:
       file and `encoding`: metadata such as PNG's sRGB chunk is not trusted).
       Float images are linear: `None` or `"linear"`; `"srgb"` is an error.
 
+    Row 0 is the top of the image as displayed: the file's display window
+    (EXR files may store a larger data window, which is cut to it; a smaller
+    one is an error) turned by its EXIF/TIFF orientation tag (a Radiance
+    `.hdr` stored bottom-up reports tag 4). Values are **as stored**: an
+    alpha channel (`read_image_info(path)["alpha"]`) is returned in its place,
+    scaled like the colour but never sRGB-decoded, and the colour is never
+    multiplied or divided by it (PNG and TIFF store colour unassociated with
+    alpha, EXR associated — premultiplied). `read_radiance` separates it.
+
     Raises `FileNotFoundError` / `IsADirectoryError` / `ValueError` naming
     the file when it is missing, a directory, unreadable or of an
     unsupported pixel type.
     """
     path = os.fspath(path)
     arr, info = _read_pixels(path)
-    if _check_encoding(path, encoding, info) == "srgb":
-        arr = _srgb_to_linear(arr)
-    return arr
+    return _decode(arr, _check_encoding(path, encoding, info), info["alpha_channel"])
 
 
-def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, saturation: float | None = None):
+#: What `read_radiance` does with an alpha channel (`alpha=`).
+ALPHA_MODES = ("ignore", "mask")
+
+
+def _split_alpha(path: str, arr, info: dict, alpha, what: str = "image"):
+    """(colour channels, alpha channel or None) of `_read_pixels`' output; `alpha` must be declared if there is one."""
+    k = info["alpha_channel"]
+    if k < 0:
+        return arr, None
+    if alpha not in ALPHA_MODES:
+        raise ValueError(
+            f"{what} {path!r} has an alpha channel: declare `alpha` as \"ignore\" (drop it) or \"mask\" (also drop "
+            "the pixels whose alpha is at most half of full scale); it is never guessed"
+            + ("" if alpha is None else f" (got {alpha!r})"))
+    keep = [c for c in range(arr.shape[-1]) if c != k]
+    return np.ascontiguousarray(arr[..., keep]), arr[..., k]
+
+
+def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, saturation: float | None = None,
+                  alpha: str | None = None):
     """Read a captured image as linear radiance and the mask of its unclipped pixels.
 
-    A pixel is *saturated* when any channel reaches `saturation` (`>=`),
+    A pixel is *saturated* when any colour channel reaches `saturation` (`>=`),
     compared in the **file's own units** — code values for integer files,
     stored values for float files — before decoding or scaling. The
-    radiance is `exposure · read_image(path, encoding)`.
+    radiance is `exposure · read_image(path, encoding)` without its alpha
+    channel.
 
     **Arguments:**
 
@@ -189,8 +283,15 @@ def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, satu
     - `exposure`: a positive finite scale multiplied into the linear values.
     - `saturation`: the threshold; `None` means the format's maximum code
       value (255, 65535) for integer files and no threshold for float files.
+    - `alpha`: **required when the file has an alpha channel** (`None` then
+      raises `ValueError` naming the file and `alpha`): `"ignore"` drops the
+      channel; `"mask"` drops it and marks pixels whose alpha is at most half
+      of full scale (code ≤ c_max/2, or ≤ 0.5 in a float file) invalid. The
+      colour is used as stored either way (never divided by alpha). Ignored
+      for files without alpha.
 
-    **Returns:** `(radiance float32 (H, W, C), valid bool (H, W))`.
+    **Returns:** `(radiance float32 (H, W, C), valid bool (H, W))`, `C` the
+    colour channels.
     """
     path = os.fspath(path)
     if isinstance(exposure, bool) or not isinstance(exposure, (int, float, np.floating, np.integer)) \
@@ -198,8 +299,11 @@ def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, satu
         raise ValueError(f"`exposure` must be a positive finite number, got {exposure!r} (reading {path})")
     if saturation is not None and (isinstance(saturation, bool) or not math.isfinite(saturation) or saturation <= 0):
         raise ValueError(f"`saturation` must be a positive finite number or None, got {saturation!r} (reading {path})")
+    if alpha is not None and alpha not in ALPHA_MODES:
+        raise ValueError(f'`alpha` must be "ignore", "mask" or None, got {alpha!r} (reading {path})')
     arr, info = _read_pixels(path)
     enc = _check_encoding(path, encoding, info)
+    arr, cover = _split_alpha(path, arr, info, alpha)
     if info["float"]:
         file_units = arr
     else:
@@ -207,11 +311,37 @@ def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, satu
         if saturation is None:
             saturation = info["max_code"]
     valid = np.ones(arr.shape[:2], bool) if saturation is None else ~np.any(file_units >= saturation, axis=-1)
+    if cover is not None and alpha == "mask":
+        valid &= cover > 0.5
     if enc == "srgb":
         arr = _srgb_to_linear(arr)
     if exposure != 1:
         arr = (arr * np.float32(exposure)).astype(np.float32)
     return arr, valid
+
+
+def read_mask(path) -> np.ndarray:
+    """Read a mask image: `True` where its first channel is above half of full scale.
+
+    Integer files: code > c_max / 2 (c_max = 255 or 65535), with no transfer
+    function (a mask is not radiance); float files: value > 0.5. A file with
+    an alpha channel is accepted only if the alpha is opaque everywhere:
+    otherwise which channel holds the mask would be a guess, and that is a
+    `ValueError` naming the file.
+
+    **Returns:** bool `(H, W)`.
+    """
+    path = os.fspath(path)
+    arr, info = _read_pixels(path)
+    k = info["alpha_channel"]
+    if k >= 0:
+        if not np.all(arr[..., k] >= 1.0):
+            raise ValueError(
+                f"mask {path!r} has an alpha channel that is not opaque everywhere: which channel holds the mask "
+                "would be a guess; save the mask as one channel (a pixel is used where it is above half of full "
+                "scale)")
+        arr = arr[..., [c for c in range(arr.shape[-1]) if c != k]]
+    return arr[..., 0] > 0.5
 
 
 # ----------------------------------------------------------------------------- atomic writes
@@ -552,6 +682,9 @@ def read_envmap(
       lat-long, half the size for angular maps.
     - `encoding`: for 8/16-bit integer files only, as `read_image` (required there).
 
+    An alpha channel is dropped if it is opaque everywhere and is an error
+    otherwise (a map has radiance in every direction).
+
     A `"+y"` lat-long file whose width is a multiple of 4 and whose size is
     kept is remapped exactly (a column permutation); otherwise the map is
     resampled bilinearly (angular maps always are).
@@ -562,7 +695,15 @@ def read_envmap(
         raise ValueError(f'`up` must be "+z" or "+y", got {up!r}')
     if layout not in ("latlong", "angular"):
         raise ValueError(f'`layout` must be "latlong" or "angular", got {layout!r}')
-    img = read_image(path, encoding)
+    path = os.fspath(path)
+    img, info = _read_pixels(path)
+    img = _decode(img, _check_encoding(path, encoding, info), info["alpha_channel"])
+    if info["alpha_channel"] >= 0:
+        k = info["alpha_channel"]
+        if not np.all(img[..., k] >= 1.0):
+            raise ValueError(f"environment map {path!r} has an alpha channel that is not opaque everywhere: an "
+                             "environment map is radiance from every direction; remove the alpha channel")
+        img = np.ascontiguousarray(img[..., [c for c in range(img.shape[-1]) if c != k]])
     fh, fw = img.shape[:2]
     if layout == "latlong":
         if fw != 2 * fh:
@@ -613,6 +754,8 @@ class _ManifestNotFound(ManifestError, FileNotFoundError):
 
 
 _BRDF_MODELS = ("torrance_sparrow", "sharing", "sharing_spatial")
+_PIXEL_CENTERS = ("half", "integer")  # pinhole `pixel_centers`: pixel (i, j) centred at (j + 1/2, i + 1/2) or (j, i)
+_MESH_NORMALS = ("smooth", "faces")  # `geometry.normals`
 _SOLVE_DEFAULTS = {"lighting_lmax": 12, "render_lmax": None, "fresnel": True, "saturation": None,
                    "brdf_model": "torrance_sparrow", "textured": None, "n_centers": 400, "m_w": 0.3, "m_xy": 0.3,
                    "tol": None, "min_cos": 0.1, "max_samples": 200000}
@@ -735,6 +878,13 @@ def _lighting(r: _Reader, v, where: str):
             raise r.err(f"{where}.encoding", f'must be "linear" (or absent) for the float image {env}')
         if not info["float"] and enc is None:
             raise r.err(f"{where}.encoding", f'is required for the {info["bits"]}-bit integer image {env} ("linear" or "srgb")')
+        fw, fh = info["width"], info["height"]
+        if layout == "latlong" and fw != 2 * fh:
+            raise r.err(f"{where}.envmap", f"is a {fw}x{fh} image but a lat-long map (`{where}.layout` \"latlong\") "
+                                           f"must be twice as wide as high: {env}")
+        if layout == "angular" and fw != fh:
+            raise r.err(f"{where}.envmap", f"is a {fw}x{fh} image but an angular map (`{where}.layout` \"angular\") "
+                                           f"must be square: {env}")
     dirs_raw = v.get("directional")
     dirs = []
     if dirs_raw is not None:
@@ -760,11 +910,17 @@ def _camera(r: _Reader, cam, where: str, image_info):
     model = r.choice(cam.get("model"), f"{where}.model", ("pinhole", "orthographic"))
     c = {"model": model}
     if model == "pinhole":
-        r.obj(cam, where, common | {"fx", "fy", "cx", "cy"}, required=("fx", "fy", "cx", "cy", "cam_to_world"))
+        r.obj(cam, where, common | {"fx", "fy", "cx", "cy", "pixel_centers"},
+              required=("fx", "fy", "cx", "cy", "cam_to_world"))
         c["fx"] = r.number(cam["fx"], f"{where}.fx", gt=0)
         c["fy"] = r.number(cam["fy"], f"{where}.fy", gt=0)
-        c["cx"] = r.number(cam["cx"], f"{where}.cx")
-        c["cy"] = r.number(cam["cy"], f"{where}.cy")
+        centers = "half" if cam.get("pixel_centers") is None else \
+            r.choice(cam["pixel_centers"], f"{where}.pixel_centers", _PIXEL_CENTERS)
+        # jaxsh's pixel (i, j) is centred at (u, v) = (j + 1/2, i + 1/2); OpenCV's ("integer") at (j, i): the same
+        # camera has a principal point half a pixel further in jaxsh's coordinates
+        shift = 0.5 if centers == "integer" else 0.0
+        c["cx"] = r.number(cam["cx"], f"{where}.cx") + shift
+        c["cy"] = r.number(cam["cy"], f"{where}.cy") + shift
     else:
         r.obj(cam, where, common | {"scale"}, required=("scale", "cam_to_world"))
         c["scale"] = r.number(cam["scale"], f"{where}.scale", gt=0)
@@ -848,15 +1004,17 @@ def read_manifest(path) -> dict:
 
     **Returns:** a plain dict:
 
-    - `geometry`: `{"sphere": {"center": (3,), "radius"}}`, `{"mesh": abs_path}`,
+    - `geometry`: `{"sphere": {"center": (3,), "radius"}}`, `{"mesh": abs_path, "normals": "smooth" | "faces"}`,
       `{"normal_map": abs_path}`, or `{}` (every view has its own `normal_map`);
     - `views`: list of `{"image", "mask", "normal_map": abs_path | None, "camera": {...},
       "encoding": "linear" | "srgb" | None, "exposure": float, "saturation": float | None,
-      "lighting": None | a lighting dict}`; the camera has its `model` ("pinhole"
-      or "orthographic"), intrinsics, `width`, `height` (from the camera
-      block, else from the image header) and `cam_to_world` `(4, 4)`. The
-      encoding is "linear" for float images; `saturation` defaults to the
-      image's maximum code value for integer images;
+      "alpha": "ignore" | "mask" | None, "lighting": None | a lighting dict}`; the camera has its
+      `model` ("pinhole" or "orthographic"), intrinsics, `width`, `height` (from the camera
+      block, else from the image header) and `cam_to_world` `(4, 4)`; a pinhole camera's `cx`, `cy`
+      are in jaxsh's pixel coordinates (pixel (i, j) centred at (j + ½, i + ½)) whatever its declared
+      `pixel_centers` (`"integer"` adds ½ to both). The encoding is "linear" for float images;
+      `saturation` defaults to the image's maximum code value for integer images; `alpha` (the
+      view's, else the top-level one) is required when the image has an alpha channel;
     - `lighting`: None (unknown) or `{"envmap": abs_path | None, "up", "layout", "encoding",
       "directional": [{"direction": (3,) unit, "radiance": (3,)}]}`;
     - `brdf`: None (unknown), `{"model": "torrance_sparrow", "kd", "ks", "mu": float | None, "sigma",
@@ -878,15 +1036,17 @@ def read_manifest(path) -> dict:
     r = _Reader(path)
     if not isinstance(raw, dict):
         raise ManifestError(f"{path}: the manifest must be a JSON object, got {_show(raw)}")
-    r.obj(raw, "", {"$schema", "geometry", "views", "lighting", "brdf", "solve", "encoding"}, required=("views",))
+    r.obj(raw, "", {"$schema", "geometry", "views", "lighting", "brdf", "solve", "encoding", "alpha"},
+          required=("views",))
     default_enc = None if raw.get("encoding") is None else r.choice(raw["encoding"], "encoding", ENCODINGS)
+    default_alpha = None if raw.get("alpha") is None else r.choice(raw["alpha"], "alpha", ALPHA_MODES)
 
     # views first: whether `geometry` may be absent depends on them
     views_raw = raw["views"]
     if not isinstance(views_raw, list) or not views_raw:
         raise r.err("views", f"must be a non-empty list, got {_show(views_raw)}")
     views = []
-    allowed_view = {"image", "mask", "camera", "encoding", "exposure", "saturation", "lighting", "normal_map"}
+    allowed_view = {"image", "mask", "camera", "encoding", "exposure", "saturation", "lighting", "normal_map", "alpha"}
     for k, v in enumerate(views_raw):
         where = f"views[{k}]"
         r.obj(v, where, allowed_view, required=("camera",))
@@ -911,6 +1071,11 @@ def read_manifest(path) -> dict:
                                                      '("linear" or "srgb"; a top-level `encoding` sets a default)')
                 if saturation is None:
                     saturation = float(info["max_code"])
+        alpha = default_alpha if v.get("alpha") is None else r.choice(v["alpha"], f"{where}.alpha", ALPHA_MODES)
+        if info is not None and info["alpha"] and alpha is None:
+            raise r.err(f"{where}.alpha", f"is required: the image {image} has an alpha channel; declare \"ignore\" "
+                                          "(drop it) or \"mask\" (also drop the pixels whose alpha is at most half of "
+                                          "full scale); it is never guessed (a top-level `alpha` sets a default)")
         exposure = 1.0 if v.get("exposure") is None else r.number(v["exposure"], f"{where}.exposure", gt=0)
         nmap = None if v.get("normal_map") is None else r.file(v["normal_map"], f"{where}.normal_map", must_exist=True)
         if nmap is not None:
@@ -920,7 +1085,7 @@ def read_manifest(path) -> dict:
                                                    f"{cam['width']}x{cam['height']}: {nmap}")
         lighting_v = _lighting(r, v.get("lighting"), f"{where}.lighting")
         views.append({"image": image, "mask": mask, "normal_map": nmap, "camera": cam, "encoding": enc,
-                      "exposure": exposure, "saturation": saturation, "lighting": lighting_v})
+                      "exposure": exposure, "saturation": saturation, "alpha": alpha, "lighting": lighting_v})
 
     per_view_normals = [v["normal_map"] is not None for v in views]
     geo = raw.get("geometry")
@@ -929,7 +1094,10 @@ def read_manifest(path) -> dict:
             raise ManifestError(f"{path}: missing field `geometry` (it may be left out only when every view has a `normal_map`)")
         geometry = {}
     else:
-        r.obj(geo, "geometry", {"mesh", "sphere", "normal_map"})
+        r.obj(geo, "geometry", {"mesh", "sphere", "normal_map", "normals"})
+        if geo.get("normals") is not None and geo.get("mesh") is None:
+            raise r.err("geometry.normals", "is only for a `geometry.mesh` (a sphere's normals are exact; a normal map "
+                                            "holds its own)")
         if len([key for key in ("mesh", "sphere", "normal_map") if geo.get(key) is not None]) != 1:
             raise ManifestError(f'{path}: `geometry` must have exactly one of "mesh", "sphere" or "normal_map"')
         if any(per_view_normals) and geo.get("normal_map") is None:
@@ -941,7 +1109,9 @@ def read_manifest(path) -> dict:
             geometry = {"sphere": {"center": r.vector(sph["center"], "geometry.sphere.center", 3),
                                    "radius": r.number(sph["radius"], "geometry.sphere.radius", gt=0)}}
         elif geo.get("mesh") is not None:
-            geometry = {"mesh": r.file(geo["mesh"], "geometry.mesh", must_exist=True)}
+            geometry = {"mesh": r.file(geo["mesh"], "geometry.mesh", must_exist=True),
+                        "normals": "smooth" if geo.get("normals") is None else
+                        r.choice(geo["normals"], "geometry.normals", _MESH_NORMALS)}
         else:
             nmap = r.file(geo["normal_map"], "geometry.normal_map", must_exist=True)
             hw = _normal_map_shape(r, nmap, "geometry.normal_map")
@@ -1015,6 +1185,7 @@ def _brdf_block(r: _Reader, b, views: list):
                 if (c["width"], c["height"]) != (rbf["width"], rbf["height"]):
                     raise r.err(f"views[{k}].camera", f"is {c['width']}x{c['height']} but the spatial RBF {p} has surface "
                                                       f"coordinates in a {rbf['width']}x{rbf['height']} pixel grid")
+            _one_pixel_grid(r, views, f"the spatial RBF `brdf.file` {p} takes its surface coordinates from")
         return {"model": "rbf", "file": p, "spatial": rbf["spatial"], "rbf": rbf}
     r.obj(b, "brdf", {"model", "kd", "ks", "mu", "sigma"}, required=("model", "kd", "ks", "sigma"))
     if "mu" not in b:
@@ -1036,9 +1207,21 @@ def _brdf_block(r: _Reader, b, views: list):
             if tex.shape[:2] != (c["height"], c["width"]):
                 raise r.err(f"brdf.{key}", f"is a {tex.shape[1]}x{tex.shape[0]} map but `views[{k}].camera` is "
                                            f"{c['width']}x{c['height']}: a texture map is in the views' pixel grid ({p})")
+        _one_pixel_grid(r, views, f"the texture map `brdf.{key}` {p} is in")
         out[key] = tex
         out["files"][key] = p
     return out
+
+
+def _one_pixel_grid(r: _Reader, views: list, what: str) -> None:
+    """Maps in a pixel grid (texture maps, a spatial RBF's surface coordinates) hold values per pixel of one camera:
+    `views[0].camera`'s; every view must have that camera (pose and intrinsics), else the values would stick to the
+    image, not the surface."""
+    for k, view in enumerate(views[1:], 1):
+        if not _same_camera(view["camera"], views[0]["camera"]):
+            raise r.err(f"views[{k}].camera", f"differs from `views[0].camera`: {what} the pixel grid of one camera, "
+                                              "`views[0].camera` (the camera it was made for: the fit's); every view "
+                                              "must have that camera (render new lights, not new views)")
 
 
 def _same_camera(a: dict, b: dict) -> bool:

@@ -13,11 +13,11 @@ and re-renders `view_###.exr/.png` of every view with the recovered values.
 Meshes get the visibility terms of sec. 6.4; normal maps
 (`jaxsh.normal_map_gbuffer`) give no shadows.
 
-Images are read with their declared `encoding`, their saturated pixels (at or
-above `views[k].saturation`, in the file's units) dropped before the
-`exposure` scale is applied. Everything the manifest names is validated, and
-`--out` checked against every input, before the solve; all files are written
-atomically.
+Images are read with their declared `encoding` and `alpha`, their saturated
+pixels (at or above `views[k].saturation`, in the file's units) dropped before
+the `exposure` scale is applied; masks are read by `jaxsh.io.read_mask`.
+Everything the manifest names is validated, and `--out` checked against every
+input, before the solve; all files are written atomically.
 """
 
 from __future__ import annotations
@@ -44,6 +44,8 @@ from ._render_manifest import (
     check_unsupported,
     lighting_from_block,
     lighting_from_manifest,
+    lighting_where,
+    manifest_mesh,
     pixel_xy,
     render_rbf_view,
     same_camera,
@@ -143,11 +145,15 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     for k, view in enumerate(m["views"]):  # headers only: every shape checked before any work
         c = view["camera"]
         if view.get("mask"):
-            info = jio.read_image_info(view["mask"])
+            try:
+                info = jio.read_image_info(view["mask"])
+            except ValueError as e:
+                raise jio.ManifestError(f"{m['path']}: `views[{k}].mask` cannot be read: {e}") from None
             if (info["width"], info["height"]) != (c["width"], c["height"]):
                 raise jio.ManifestError(f"{m['path']}: `views[{k}].mask` is {info['width']}x{info['height']} but "
                                         f"`views[{k}].camera` is {c['width']}x{c['height']}: {view['mask']}")
-    mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
+    mesh = manifest_mesh(m)
+
     def to_lighting(parts):
         # NumPy parts as they are: `Lighting`'s fields convert them (`as_float_array`: a host copy sent by
         # `device_put`, no XLA program per shape)
@@ -159,30 +165,19 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         known = to_lighting(lighting_from_manifest(m, 0.1, solve.get("render_lmax")))
     if blocks is not None:
         per_view = [known if (blk is m["lighting"] and known is not None)
-                    else to_lighting(lighting_from_block(blk, 0.1, solve.get("render_lmax"))) for blk in blocks]
+                    else to_lighting(lighting_from_block(blk, 0.1, solve.get("render_lmax"), manifest=m["path"],
+                                                         where=lighting_where(m, blocks, k)))
+                    for k, blk in enumerate(blocks)]
         if known is None:
             known = per_view[0]  # for lighting.exr / result.json
     view_light = (lambda k: known) if per_view is None else (lambda k: per_view[k])
     t = time.perf_counter()
     gbs, imgs, masks, extras = [], [], [], []
     maps = {}
-    for k, view in enumerate(m["views"]):
+    for k in range(n):
         say(f"view {k + 1}/{n}: G-buffer{' and visibility' if mesh is not None else ''}")
         g, extra = view_geometry(m, k, mesh, None if known is None else view_light(k).fast_directions, maps)
-        img, unclipped = jio.read_radiance(view["image"], view["encoding"], view["exposure"], view["saturation"])
-        img = np.asarray(img, np.float64)[..., :3]
-        if img.shape[:2] != tuple(np.asarray(g.mask).shape):
-            raise jio.ManifestError(
-                f"{view['image']}: image is {img.shape[1]}x{img.shape[0]} but `views[{k}].camera` is "
-                f"{np.asarray(g.mask).shape[1]}x{np.asarray(g.mask).shape[0]}"
-            )
-        if img.shape[2] != 3:
-            raise jio.ManifestError(f"{view['image']}: `views[{k}].image` must have 3 channels (RGB), got {img.shape[2]}")
-        mask = unclipped
-        if view.get("mask"):
-            # masks are not radiance: code values are scaled to [0, 1] (no transfer function), used where > 0.5
-            mk = np.asarray(jio.read_image(view["mask"], "linear"))
-            mask = mask & ((mk[..., 0] if mk.ndim == 3 else mk) > 0.5)
+        img, mask = _read_view(m, k, np.asarray(g.mask))
         gbs.append(g)
         imgs.append(img)
         masks.append(mask)
@@ -315,6 +310,40 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     jio.write_json(out("result.json"), result)
     say(f"wrote {out_dir}/result.json, lighting.exr/.png and {len(gbs)} re-renders")
     return result
+
+
+def _read_view(m: dict, k: int, object_mask) -> tuple[np.ndarray, np.ndarray]:
+    """`(radiance (H, W, 3) float64, usable bool (H, W))` of view `k`: its image read with the declared `encoding`,
+    `exposure`, `saturation` and `alpha`, and its `mask` (`jaxsh.io.read_mask`). Every problem is a `ManifestError`
+    naming the manifest, the field and the file; so is a non-finite pixel on the object that nothing excludes."""
+    view, path = m["views"][k], m["path"]
+    where = f"views[{k}].image"
+    try:
+        img, usable = jio.read_radiance(view["image"], view["encoding"], view["exposure"], view["saturation"],
+                                        alpha=view["alpha"])
+    except ValueError as e:
+        raise jio.ManifestError(f"{path}: `{where}` cannot be used: {e}") from None
+    img = np.asarray(img, np.float64)
+    h, w = object_mask.shape
+    if img.shape[:2] != (h, w):
+        raise jio.ManifestError(f"{path}: `{where}` is {img.shape[1]}x{img.shape[0]} but `views[{k}].camera` is "
+                                f"{w}x{h}: {view['image']}")
+    if img.shape[2] != 3:
+        raise jio.ManifestError(f"{path}: `{where}` must have 3 colour channels (RGB), got {img.shape[2]} "
+                                f"(alpha not counted): {view['image']}")
+    if view.get("mask"):
+        try:
+            usable = usable & jio.read_mask(view["mask"])
+        except ValueError as e:
+            raise jio.ManifestError(f"{path}: `views[{k}].mask` cannot be used: {e}") from None
+    bad = ~np.all(np.isfinite(img), -1) & usable & object_mask
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise jio.ManifestError(
+            f"{path}: `{where}` has {int(bad.sum())} non-finite (NaN/inf) pixels on the object, e.g. (row {i}, column "
+            f"{j}): {view['image']}; fix the image, or exclude them with `views[{k}].mask` (a pixel is used where the "
+            "mask's first channel is > 0.5 of full scale)")
+    return img, usable
 
 
 def _lighting_json(light_sh, lmax: int) -> dict:

@@ -25,7 +25,12 @@ def camera_from_manifest(c: dict):
 
 def lighting_from_manifest(m: dict, sigma: float, lmax: int | None = None):
     """(slow SH coefficients (n, 3) or None, fast directions (J, 3) or None, fast energy (J, 3) or None)."""
-    return lighting_from_block(m["lighting"], sigma, lmax)
+    return lighting_from_block(m["lighting"], sigma, lmax, manifest=m["path"], where="lighting")
+
+
+def lighting_where(m: dict, blocks, k: int) -> str:
+    """The field path of view `k`'s lighting block: `lighting` (the top-level one) or `views[k].lighting`."""
+    return "lighting" if blocks is None or blocks[k] is m["lighting"] else f"views[{k}].lighting"
 
 
 def view_lighting_blocks(m: dict, command: str) -> list[dict] | None:
@@ -47,11 +52,25 @@ def view_lighting_blocks(m: dict, command: str) -> list[dict] | None:
     return blocks
 
 
-def lighting_from_block(lit: dict, sigma: float, lmax: int | None = None):
-    """`lighting_from_manifest` for one validated lighting block (top-level or `views[k].lighting`)."""
+def lighting_from_block(lit: dict, sigma: float, lmax: int | None = None, *, manifest: str, where: str):
+    """`lighting_from_manifest` for one validated lighting block (top-level or `views[k].lighting`).
+
+    A map that cannot be used (unreadable, not finite) raises `ManifestError` naming `manifest`, the field
+    `{where}.envmap` and the file."""
     slow = None
     if lit["envmap"] is not None:
-        env = jio.read_envmap(lit["envmap"], up=lit["up"], layout=lit["layout"], encoding=lit.get("encoding")).astype(np.float64)
+        field = f"{where}.envmap"
+        try:
+            env = jio.read_envmap(lit["envmap"], up=lit["up"], layout=lit["layout"], encoding=lit.get("encoding"))
+        except ValueError as e:
+            raise jio.ManifestError(f"{manifest}: `{field}` cannot be used: {e}") from None
+        bad = ~np.isfinite(env)
+        if bad.any():
+            i, j = np.argwhere(bad.any(-1))[0]
+            raise jio.ManifestError(
+                f"{manifest}: `{field}` has {int(bad.any(-1).sum())} non-finite (NaN/inf) pixels, e.g. (row {i}, "
+                f"column {j}), after its conversion to a lat-long map in the library frame: {lit['envmap']}")
+        env = env.astype(np.float64)
         h = env.shape[0]
         if lmax is None:
             lmax = int(min(math.ceil(4.0 / sigma), h // 2 - 1))
@@ -120,14 +139,37 @@ def view_geometry(m: dict, k: int, mesh, fd, cache: dict):
     cam = camera_from_manifest(view["camera"])
     geo = m["geometry"]
     if mesh is not None:
-        g = jaxsh.mesh_gbuffer(cam, mesh)
+        # `geometry.normals`: interpolated vertex normals of the merged mesh, or the flat normal of each face
+        g = jaxsh.mesh_gbuffer(cam, mesh, smooth=geo.get("normals", "smooth") == "smooth")
         return g, _mesh_visibility(mesh, g, fd)
     if "sphere" in geo:
         return jaxsh.sphere_gbuffer(cam, geo["sphere"]["center"], geo["sphere"]["radius"]), {}
-    path = view["normal_map"] or geo["normal_map"]
+    return jaxsh.normal_map_gbuffer(cam, view_normal_map(m, k, cache)), {}
+
+
+def manifest_mesh(m: dict):
+    """The trimesh of `geometry.mesh` (`jaxsh.io.read_mesh`), or None; a file it cannot read is a `ManifestError`."""
+    if "mesh" not in m["geometry"]:
+        return None
+    try:
+        return jio.read_mesh(m["geometry"]["mesh"])
+    except ValueError as e:
+        raise jio.ManifestError(f"{m['path']}: `geometry.mesh` cannot be used: {e}") from None
+
+
+def view_normal_map(m: dict, k: int, cache: dict):
+    """The normal map of view `k` (`views[k].normal_map`, else `geometry.normal_map`), each file read once (`cache`).
+
+    A map `jaxsh.io.read_normal_map` refuses raises `ManifestError` naming the manifest, the field and the file."""
+    view = m["views"][k]
+    field = f"views[{k}].normal_map" if view["normal_map"] else "geometry.normal_map"
+    path = view["normal_map"] or m["geometry"]["normal_map"]
     if path not in cache:
-        cache[path] = jio.read_normal_map(path)
-    return jaxsh.normal_map_gbuffer(cam, cache[path]), {}
+        try:
+            cache[path] = jio.read_normal_map(path)
+        except ValueError as e:
+            raise jio.ManifestError(f"{m['path']}: `{field}` cannot be used: {e}") from None
+    return cache[path]
 
 
 def check_outputs(m: dict, out_dir, names) -> list[str]:
@@ -191,17 +233,23 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
     def lit_of(k):
         key = id(blocks[k])
         if key not in cache:
-            cache[key] = lighting_from_block(blocks[k], sigma, lmax)
+            cache[key] = lighting_from_block(blocks[k], sigma, lmax, manifest=m["path"],
+                                             where=lighting_where(m, blocks, k))
         return cache[key]
 
-    mesh = jio.read_mesh(m["geometry"]["mesh"]) if "mesh" in m["geometry"] else None
+    mesh = manifest_mesh(m)
+    # every input read (and refused) before the first output is written
+    lights = [lit_of(k) for k in range(n)]
+    maps = {}
+    if not ({"mesh", "sphere"} & m["geometry"].keys()):
+        for k in range(n):
+            view_normal_map(m, k, maps)
     os.makedirs(out_dir, exist_ok=True)
     written = []
-    maps = {}
     for k, view in enumerate(m["views"]):
         if progress:
             print(f"[{k + 1}/{n}] rendering view {k}", file=sys.stderr, flush=True)
-        slow, fd, fe = lit_of(k)
+        slow, fd, fe = lights[k]
         g, extra = view_geometry(m, k, mesh, fd, maps)
         if b["model"] == "rbf":
             img = render_rbf_view(b, g, fd, fe, extra.get("fast_visibility"))

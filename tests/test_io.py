@@ -381,3 +381,172 @@ def test_writes_are_atomic(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert sorted(os.listdir(tmp_path)) == ["a.exr", "r.json"]
     assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1}
+
+
+# ----------------------------------------------------------------------------- alpha, orientation, windows
+
+
+def _write_stored(path, codes, fmt, **attrs):
+    """Write integer codes exactly as given (OpenImageIO told that alpha is unassociated, so nothing is scaled)."""
+    import OpenImageIO as oiio
+
+    h, w, c = codes.shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    if c in (2, 4):
+        spec.alpha_channel = c - 1
+    for k, v in attrs.items():
+        spec.attribute(k, v)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec), oiio.geterror()
+    out.write_image(codes)
+    out.close()
+
+
+@pytest.mark.parametrize("ext,fmt,cmax", [("png", "uint8", 255), ("png", "uint16", 65535), ("tif", "uint16", 65535)])
+def test_alpha_is_read_as_stored_and_must_be_declared(tmp_path, ext, fmt, cmax):
+    """Colour codes are never multiplied by alpha; alpha is never sRGB-decoded; radiance needs `alpha` declared.
+    (OpenImageIO's default read premultiplied: code 200 with alpha 128 read as 0.392 instead of 0.784.)"""
+    dt = np.uint8 if cmax == 255 else np.uint16
+    col = np.array([[[200, 100, 50], [255, 10, 0], [30, 30, 30]]], np.float64) * (cmax / 255)
+    alpha = np.array([[cmax // 2 + 1, cmax, cmax // 2]], np.float64)  # just above half, opaque, at half
+    codes = np.concatenate([np.round(col), alpha[..., None]], -1).astype(dt)
+    p = tmp_path / f"rgba.{ext}"
+    _write_stored(p, codes, fmt)
+    info = jio.read_image_info(p)
+    assert info["alpha"] and info["channels"] == 4
+    exact = codes.astype(np.float64) / cmax
+    np.testing.assert_allclose(jio.read_image(p, "linear"), exact, rtol=0, atol=1e-7)
+    srgb = jio.read_image(p, "srgb")
+    np.testing.assert_allclose(srgb[..., :3], _srgb_decode_reference(exact[..., :3]), rtol=1e-6, atol=1e-7)  # float32 pow
+    np.testing.assert_allclose(srgb[..., 3], exact[..., 3], rtol=0, atol=1e-7)  # alpha: linear
+    with pytest.raises(ValueError, match=r"rgba\.%s.*alpha channel.*`alpha`" % ext):
+        jio.read_radiance(p, "linear")
+    with pytest.raises(ValueError, match="`alpha` must be"):
+        jio.read_radiance(p, "linear", alpha="premultiply")
+    rad, valid = jio.read_radiance(p, "linear", alpha="ignore")
+    assert rad.shape == (1, 3, 3)
+    np.testing.assert_allclose(rad, exact[..., :3], rtol=0, atol=1e-7)
+    # saturation looks at colour only: the opaque pixel is valid, the one with a full-scale red code is not
+    np.testing.assert_array_equal(valid, [[True, False, True]])
+    _, valid = jio.read_radiance(p, "linear", alpha="mask")
+    np.testing.assert_array_equal(valid, [[True, False, False]])  # alpha at half of full scale: off the object
+
+
+def test_grey_alpha_image_and_rgb_image_without_alpha(tmp_path):
+    """Grey+alpha: one colour channel; a file without alpha needs no declaration and ignores `alpha`."""
+    p = tmp_path / "la.png"
+    _write_stored(p, np.array([[[128, 0], [128, 255]]], np.uint8), "uint8")
+    rad, valid = jio.read_radiance(p, "linear", alpha="mask")
+    assert rad.shape == (1, 2, 1)
+    np.testing.assert_allclose(rad[..., 0], [[128 / 255, 128 / 255]], atol=1e-7)
+    np.testing.assert_array_equal(valid, [[False, True]])
+    q = tmp_path / "rgb.png"
+    _write_stored(q, np.full((2, 2, 3), 7, np.uint8), "uint8")
+    assert not jio.read_image_info(q)["alpha"]
+    for a in (None, "ignore", "mask"):
+        rad, valid = jio.read_radiance(q, "linear", alpha=a)
+        assert rad.shape == (2, 2, 3) and valid.all()
+
+
+def test_read_mask_rule_and_alpha(tmp_path):
+    """Mask: first channel above half of full scale; an alpha channel only if opaque everywhere."""
+    p = tmp_path / "m.png"
+    _write_stored(p, np.array([[[127], [128], [255], [0]]], np.uint8), "uint8")
+    np.testing.assert_array_equal(jio.read_mask(p), [[False, True, True, False]])
+    p16 = tmp_path / "m16.png"
+    _write_stored(p16, np.array([[[32767], [32768]]], np.uint16), "uint16")
+    np.testing.assert_array_equal(jio.read_mask(p16), [[False, True]])
+    opaque = tmp_path / "mo.png"
+    _write_stored(opaque, np.array([[[255, 255], [0, 255]]], np.uint8), "uint8")
+    np.testing.assert_array_equal(jio.read_mask(opaque), [[True, False]])
+    cutout = tmp_path / "cut.png"  # grey 255 everywhere, the shape only in alpha: ambiguous
+    _write_stored(cutout, np.array([[[255, 255], [255, 0]]], np.uint8), "uint8")
+    with pytest.raises(ValueError, match=r"cut\.png.*alpha channel that is not opaque"):
+        jio.read_mask(cutout)
+
+
+def test_envmap_alpha(tmp_path):
+    """An opaque alpha channel is dropped from an environment map; a partial one is an error."""
+    img = np.ones((2, 4, 4), np.float32)
+    p = tmp_path / "env.exr"
+    jio.write_image(p, img)  # RGBA, alpha 1
+    assert jio.read_image_info(p)["alpha"]
+    assert jio.read_envmap(p).shape == (2, 4, 3)
+    img[0, 0, 3] = 0.5
+    jio.write_image(p, img)
+    with pytest.raises(ValueError, match=r"env\.exr.*alpha channel"):
+        jio.read_envmap(p)
+
+
+def _pattern(h=3, w=5):
+    """An asymmetric pattern: every pixel different, so any flip or turn shows."""
+    return (np.arange(h * w * 3, dtype=np.float32).reshape(h, w, 3) + 1.0)
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_orientation_tag_is_applied(tmp_path, orientation):
+    """Row 0 is the top of the image as displayed, whatever the TIFF's Orientation tag; the reference is
+    OpenImageIO's own `ImageBufAlgo.reorient`, and three tags are also checked by hand."""
+    import OpenImageIO as oiio
+
+    stored = _pattern()
+    p = tmp_path / f"o{orientation}.tif"
+    spec = oiio.ImageSpec(5, 3, 3, "float")
+    spec.attribute("Orientation", orientation)
+    out = oiio.ImageOutput.create(str(p))
+    out.open(str(p), spec)
+    out.write_image(stored)
+    out.close()
+    got = jio.read_image(p)
+    ref = oiio.ImageBufAlgo.reorient(oiio.ImageBuf(str(p))).get_pixels(oiio.FLOAT)
+    np.testing.assert_array_equal(got, ref)
+    by_hand = {1: stored, 3: stored[::-1, ::-1], 4: stored[::-1], 6: np.rot90(stored, -1), 8: np.rot90(stored, 1)}
+    if orientation in by_hand:
+        np.testing.assert_array_equal(got, by_hand[orientation])
+    info = jio.read_image_info(p)
+    assert (info["height"], info["width"]) == got.shape[:2] == ((3, 5) if orientation <= 4 else (5, 3))
+    assert info["orientation"] == orientation
+
+
+def test_radiance_hdr_stored_bottom_up(tmp_path):
+    """A Radiance file whose header says "+Y H +X W" stores its bottom row first: read top row first."""
+    rows = np.array([[1.0, 1.0], [0.0, 0.0], [0.0, 0.0]])  # displayed: top row bright
+    def rgbe(v):  # 1.0 -> mantissa 128, exponent 129: 128 * 2^(129 - 136) = 1
+        return bytes([128, 128, 128, 129]) if v else bytes(4)
+    for header, order in ((b"-Y 3 +X 2", rows), (b"+Y 3 +X 2", rows[::-1])):
+        p = tmp_path / "a.hdr"
+        with open(p, "wb") as f:
+            f.write(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n" + header + b"\n")
+            f.write(b"".join(rgbe(v) for v in order.ravel()))
+        np.testing.assert_array_equal(jio.read_image(p)[..., 0], rows)
+
+
+def test_exr_data_window(tmp_path):
+    """An EXR whose data window covers its display window (overscan) is cut to it; one that does not is an
+    error naming the file (before: its data were read as if they started at the display window's corner)."""
+    import OpenImageIO as oiio
+
+    def write(path, data, x, y, full):
+        spec = oiio.ImageSpec(data.shape[1], data.shape[0], 3, "float")
+        spec.x, spec.y = x, y
+        spec.full_x, spec.full_y, spec.full_width, spec.full_height = full
+        out = oiio.ImageOutput.create(str(path))
+        out.open(str(path), spec)
+        out.write_image(data)
+        out.close()
+
+    disp = _pattern(6, 8)
+    over = np.zeros((8, 11, 3), np.float32)
+    over[1:7, 2:10] = disp  # data window (11 x 8) at (-2, -1), display window 8 x 6 at the origin
+    p = tmp_path / "over.exr"
+    write(p, over, -2, -1, (0, 0, 8, 6))
+    info = jio.read_image_info(p)
+    assert (info["width"], info["height"]) == (8, 6)
+    np.testing.assert_array_equal(jio.read_image(p), disp)
+    q = tmp_path / "shifted.exr"
+    write(q, disp, 2, 1, (0, 0, 8, 6))
+    with pytest.raises(ValueError, match=r"shifted\.exr.*data window.*does not cover its display window"):
+        jio.read_image_info(q)
+    with pytest.raises(ValueError, match=r"shifted\.exr.*data window"):
+        jio.read_image(q)

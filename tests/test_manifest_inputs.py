@@ -1,0 +1,382 @@
+"""Manifest fields that declare how inputs are read: `geometry.normals`, `camera.pixel_centers`, `views[k].alpha`;
+textured BRDFs bound to one camera; errors from the files the manifest names (manifest path, field, file).
+
+Expected values are computed here by hand (NumPy): pixel-centre coordinates, an OpenCV projection, a
+Lambertian shading n·l, the pixels a sphere covers.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxsh
+from jaxsh import io as jio
+from solvers._fit_manifest import fit_manifest
+from solvers._render_manifest import camera_from_manifest, render_manifest
+
+N = 16
+C2W = [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]]  # looks down -z from z = 10; image up = +y
+ORTHO = {"model": "orthographic", "scale": 2.4 / N, "width": N, "height": N, "cam_to_world": C2W}
+SPHERE = {"sphere": {"center": [0, 0, 0], "radius": 1}}
+UP = {"directional": [{"direction": [0, 0, 1], "radiance": 1.0}]}  # light from +z, irradiance 1
+
+
+def _write(tmp_path, m, name="m.json"):
+    p = tmp_path / name
+    p.write_text(json.dumps(m))
+    return str(p)
+
+
+def _schema_ok(m):
+    from tests.test_manifest import _validator
+
+    _validator().validate(m)
+
+
+def _world_xy(n, scale):
+    """World (x, y) of the pixel centres of `ORTHO`-like cameras: column j -> x, row i -> -y (hand formula)."""
+    c = (np.arange(n) + 0.5 - n / 2) * scale
+    x, y = np.meshgrid(c, -c)
+    return x, y
+
+
+def _write_oiio(path, arr, fmt, **attrs):
+    """Write `arr` (H, W, C) exactly as given (no premultiplication: "oiio:UnassociatedAlpha" = 1)."""
+    import OpenImageIO as oiio
+
+    arr = np.ascontiguousarray(arr)
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    for k, v in attrs.items():
+        spec.attribute(k, v)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec), out.geterror()
+    assert out.write_image(arr), out.geterror()
+    out.close()
+
+
+# ----------------------------------------------------------------------------- geometry.normals
+
+
+def _cube(tmp_path):
+    import trimesh
+
+    trimesh.creation.box(extents=(1, 1, 1)).export(tmp_path / "cube.ply")
+
+
+@pytest.mark.parametrize("normals", ["faces", "smooth", None])
+def test_mesh_normals_faces_shade_a_cube_flat(tmp_path, normals):
+    """A unit cube seen from above, lit from +z, Lambertian kd = 1: n·l = 1 on the whole top face with face
+    normals; the smoothed vertex normals (the default) tilt towards the corners and render less."""
+    _cube(tmp_path)
+    n, scale = 20, 0.08  # pixel centres at ±0.04, ..., ±0.52: none on the cube's edges (±0.5)
+    cam = {"model": "orthographic", "scale": scale, "width": n, "height": n, "cam_to_world": C2W}
+    geo = {"mesh": "cube.ply"} if normals is None else {"mesh": "cube.ply", "normals": normals}
+    m = {"geometry": geo, "views": [{"camera": cam}], "lighting": UP,
+         "brdf": {"model": "torrance_sparrow", "kd": 1.0, "ks": 0.0, "mu": None, "sigma": 0.2}}
+    _schema_ok(m)
+    render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
+    img = np.asarray(jio.read_image(tmp_path / "out" / "view_000.exr"))[..., 0]
+    x, y = _world_xy(n, scale)
+    top = (np.abs(x) < 0.5) & (np.abs(y) < 0.5)
+    assert top.sum() == 144
+    np.testing.assert_array_equal(img[~top], 0.0)
+    if normals == "faces":
+        np.testing.assert_allclose(img[top], 1.0, atol=1e-9)
+    else:  # the default is "smooth": interpolated corner normals (±1, ±1, 1)/√3 at the corners
+        assert img[top].min() < 0.8 and img[top].max() <= 1.0 + 1e-9
+
+
+@pytest.mark.parametrize("geo", [{**SPHERE, "normals": "faces"}, {"normal_map": "n.npy", "normals": "smooth"}])
+def test_mesh_normals_only_with_a_mesh(tmp_path, geo):
+    np.save(tmp_path / "n.npy", np.zeros((N, N, 3)))
+    m = {"geometry": geo, "views": [{"camera": ORTHO}]}
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `geometry\.normals` is only for a `geometry\.mesh`"):
+        jio.read_manifest(_write(tmp_path, m))
+    from tests.test_manifest import _validator
+
+    assert list(_validator().iter_errors(m))
+
+
+def test_mesh_normals_value_is_checked(tmp_path):
+    _cube(tmp_path)
+    m = {"geometry": {"mesh": "cube.ply", "normals": "flat"}, "views": [{"camera": ORTHO}]}
+    with pytest.raises(jio.ManifestError, match=r"`geometry\.normals` must be one of \"smooth\", \"faces\""):
+        jio.read_manifest(_write(tmp_path, m))
+    r = jio.read_manifest(_write(tmp_path, {**m, "geometry": {"mesh": "cube.ply"}}))
+    assert r["geometry"] == {"mesh": str(tmp_path / "cube.ply"), "normals": "smooth"}
+
+
+# ----------------------------------------------------------------------------- camera.pixel_centers
+
+W, H, F = 32, 24, 40.0
+CX_CV, CY_CV = (W - 1) / 2, (H - 1) / 2  # an OpenCV calibration of a centred lens
+
+
+def _pinhole(**kw):
+    c2w = np.asarray(jaxsh.look_at([0.3, -4, 1], [0, 0, 0]))
+    return {"model": "pinhole", "fx": F, "fy": F, "width": W, "height": H, "cam_to_world": c2w.tolist(), **kw}
+
+
+def _ray_distance(cam_block, point, row, col):
+    o, d = map(np.asarray, jaxsh.camera_rays(camera_from_manifest(cam_block)))
+    v = point - o[row, col]
+    return float(np.linalg.norm(v - (v @ d[row, col]) * d[row, col]))
+
+
+def test_pixel_centers_integer_reads_opencv_intrinsics(tmp_path):
+    """A point OpenCV images at the centre of pixel (row 7, column 22) — u = 22, v = 7 by OpenCV's pinhole formula —
+    lies on jaxsh's ray through that pixel when the camera declares `"pixel_centers": "integer"`."""
+    c2w = np.asarray(_pinhole()["cam_to_world"])
+    row, col = 7, 22
+    xc = np.array([(col - CX_CV) / F, (row - CY_CV) / F, 1.0]) * 3.7  # camera frame, depth 3.7
+    xw = c2w[:3, :3] @ xc + c2w[:3, 3]
+    # OpenCV's projection of the world point, by hand: x_cam = R^T (X - t); u = fx x/z + cx, v = fy y/z + cy
+    p = c2w[:3, :3].T @ (xw - c2w[:3, 3])
+    np.testing.assert_allclose([F * p[0] / p[2] + CX_CV, F * p[1] / p[2] + CY_CV], [col, row], atol=1e-12)
+    views = [{"camera": _pinhole(cx=CX_CV, cy=CY_CV, pixel_centers="integer")},
+             {"camera": _pinhole(cx=CX_CV + 0.5, cy=CY_CV + 0.5)},  # the default "half", shifted by hand
+             {"camera": _pinhole(cx=CX_CV + 0.5, cy=CY_CV + 0.5, pixel_centers="half")},
+             {"camera": _pinhole(cx=CX_CV, cy=CY_CV)}]  # OpenCV's K copied verbatim: half a pixel off
+    m = {"geometry": SPHERE, "views": views}
+    _schema_ok(m)
+    cams = [v["camera"] for v in jio.read_manifest(_write(tmp_path, m))["views"]]
+    for c in cams[:3]:
+        assert _ray_distance(c, xw, row, col) < 1e-9
+    assert _ray_distance(cams[3], xw, row, col) > 1e-2  # the verbatim K misses the point
+    # the same camera, whichever way it is written: equal blocks, equal rays
+    assert jio._same_camera(cams[0], cams[1]) and jio._same_camera(cams[0], cams[2])
+    assert not jio._same_camera(cams[0], cams[3])
+    rays = [np.asarray(jaxsh.camera_rays(camera_from_manifest(c))[1]) for c in cams[:2]]
+    np.testing.assert_array_equal(rays[0], rays[1])
+
+
+def test_pixel_centers_errors(tmp_path):
+    m = {"geometry": SPHERE, "views": [{"camera": _pinhole(cx=16, cy=12, pixel_centers="corner")}]}
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `views\[0\]\.camera\.pixel_centers` must be one of"):
+        jio.read_manifest(_write(tmp_path, m))
+    from tests.test_manifest import _validator
+
+    assert list(_validator().iter_errors(m))
+    m = {"geometry": SPHERE, "views": [{"camera": {**ORTHO, "pixel_centers": "half"}}]}  # pinhole only
+    with pytest.raises(jio.ManifestError, match=r"unknown field `views\[0\]\.camera\.pixel_centers`"):
+        jio.read_manifest(_write(tmp_path, m))
+
+
+def test_pixel_centers_views_compare_equal_for_a_shared_normal_map(tmp_path):
+    """`geometry.normal_map` needs one camera for all views: "integer" and its "half" equivalent are that camera."""
+    np.save(tmp_path / "n.npy", np.zeros((H, W, 3)))
+    views = [{"camera": _pinhole(cx=CX_CV, cy=CY_CV, pixel_centers="integer")},
+             {"camera": _pinhole(cx=CX_CV + 0.5, cy=CY_CV + 0.5)}]
+    jio.read_manifest(_write(tmp_path, {"geometry": {"normal_map": "n.npy"}, "views": views}))
+    views[1]["camera"]["cx"] = CX_CV
+    with pytest.raises(jio.ManifestError, match=r"`views\[1\]\.camera` differs from `views\[0\]\.camera`"):
+        jio.read_manifest(_write(tmp_path, {"geometry": {"normal_map": "n.npy"}, "views": views}))
+
+
+# ----------------------------------------------------------------------------- pixel-grid BRDFs need one camera
+
+
+def _kd_map():
+    kd = np.full((N, N, 3), 0.2)
+    kd[:, N // 2:] = 0.8  # left half 0.2, right half 0.8
+    return kd
+
+
+def test_texture_map_render_needs_the_camera_it_was_made_for(tmp_path):
+    np.save(tmp_path / "kd.npy", _kd_map())
+    np.save(tmp_path / "ks.npy", np.zeros((N, N, 3)))
+    side = {**ORTHO, "cam_to_world": np.asarray(jaxsh.look_at([5, 0, 0], [0, 0, 0])).tolist()}  # same size
+    brdf = {"model": "torrance_sparrow", "kd": "kd.npy", "ks": "ks.npy", "mu": None, "sigma": 0.2}
+    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}, {"camera": side}], "lighting": UP, "brdf": brdf}
+    p = _write(tmp_path, m)
+    with pytest.raises(jio.ManifestError,
+                       match=r"m\.json: `views\[1\]\.camera` differs from `views\[0\]\.camera`: the texture map "
+                             r"`brdf\.kd` .*kd\.npy is in the pixel grid of one camera") as e:
+        render_manifest(p, tmp_path / "out", progress=False)
+    assert str(e.value).startswith(p)
+    assert not (tmp_path / "out").exists()
+    # the same camera renders: kd(i, j) * E * n_z on the sphere (n_z from the pixel centre, by hand)
+    m["views"] = [{"camera": ORTHO}, {"camera": ORTHO, "lighting": {"directional": [{"direction": [0, 0, 1],
+                                                                                      "radiance": 2.0}]}}]
+    _schema_ok(m)
+    render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
+    x, y = _world_xy(N, 2.4 / N)
+    r2 = x ** 2 + y ** 2
+    nz = np.sqrt(np.clip(1 - r2, 0, None)) * (r2 < 1)
+    for k, e_ in enumerate((1.0, 2.0)):
+        got = np.asarray(jio.read_image(tmp_path / "out" / f"view_{k:03d}.exr"))
+        np.testing.assert_allclose(got, _kd_map() * e_ * nz[..., None], atol=1e-6)
+
+
+def test_spatial_rbf_render_needs_the_camera_it_was_fitted_in(tmp_path):
+    rng = np.random.default_rng(0)
+    model = jaxsh.RBFModel(rng.normal(size=(6, 5)), np.zeros((6, 3)), np.full((6, 3), 0.1), [0.3, 0.3, 1, 1, 0.5])
+    jio.write_rbf(tmp_path / "s.npz", model, spatial=True, width=N, height=N)
+    side = {**ORTHO, "cam_to_world": np.asarray(jaxsh.look_at([0, 5, 0], [0, 0, 0])).tolist()}
+    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}, {"camera": side}], "lighting": UP,
+         "brdf": {"model": "rbf", "file": "s.npz"}}
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `views\[1\]\.camera` differs from `views\[0\]\.camera`: "
+                                                r"the spatial RBF `brdf\.file` .*s\.npz"):
+        render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
+    m["views"][1]["camera"] = ORTHO
+    assert len(render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)) == 4
+
+
+# ----------------------------------------------------------------------------- errors from the files
+
+
+def _sphere_image():
+    """Lambertian sphere (kd = (0.6, 0.5, 0.4)) under `UP`, by hand: kd n_z, 0 off the sphere; and the sphere mask."""
+    x, y = _world_xy(N, 2.4 / N)
+    r2 = x ** 2 + y ** 2
+    inside = r2 < 1
+    nz = np.sqrt(np.clip(1 - r2, 0, None)) * inside
+    return nz[..., None] * np.array([0.6, 0.5, 0.4]), inside
+
+
+def _fit_manifest_file(tmp_path, image, **view):
+    m = {"geometry": SPHERE, "views": [{"image": image, "camera": ORTHO, **view}], "lighting": UP, "brdf": None}
+    _schema_ok(m)
+    return _write(tmp_path, m)
+
+
+def test_nan_pixel_names_the_view_and_what_the_manifest_can_do(tmp_path):
+    img, inside = _sphere_image()
+    img = img.astype(np.float32)
+    img[N // 2, N // 2, 1] = np.nan  # on the sphere
+    _write_oiio(tmp_path / "img.exr", img, "float")  # jaxsh.io.write_image refuses NaN
+    p = _fit_manifest_file(tmp_path, "img.exr")
+    with pytest.raises(jio.ManifestError) as e:
+        fit_manifest(p, tmp_path / "out", progress=False)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}: `views[0].image` has 1 non-finite")
+    assert f"(row {N // 2}, column {N // 2})" in msg and str(tmp_path / "img.exr") in msg
+    assert "`views[0].mask`" in msg and "invalid=" not in msg
+    # excluding the pixel with `views[0].mask` is what the message says: the fit then runs
+    mask = np.full((N, N, 1), 255, np.uint8)
+    mask[N // 2, N // 2] = 0
+    _write_oiio(tmp_path / "mask.png", mask, "uint8")
+    res = fit_manifest(_fit_manifest_file(tmp_path, "img.exr", mask="mask.png"), tmp_path / "out", progress=False)
+    assert res["samples"]["valid"] == int(inside.sum()) - 1
+
+
+@pytest.mark.parametrize("per_view", [False, True])
+def test_nan_envmap_names_the_lighting_field(tmp_path, per_view):
+    env = np.ones((16, 32, 3), np.float32)
+    env[3, 7, 0] = np.nan
+    _write_oiio(tmp_path / "env.exr", env, "float")
+    lit = {"envmap": "env.exr"}
+    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}, {"camera": ORTHO, **({"lighting": lit} if per_view else {})}],
+         "lighting": lit if not per_view else UP,
+         "brdf": {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.1, "mu": 1.5, "sigma": 0.2}}
+    p = _write(tmp_path, m)
+    field = r"views\[1\]\.lighting\.envmap" if per_view else r"lighting\.envmap"
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `{field}` has 1 non-finite .*\(row 3, column 7\).*env\.exr"):
+        render_manifest(p, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()  # refused before any output
+
+
+@pytest.mark.parametrize("layout, shape, what", [("latlong", (8, 24), "twice as wide as high"),
+                                                 ("angular", (8, 16), "must be square")])
+def test_envmap_shape_names_the_manifest_and_field(tmp_path, layout, shape, what):
+    jio.write_image(tmp_path / "env.exr", np.ones(shape + (3,), np.float32))
+    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}], "lighting": {"envmap": "env.exr", "layout": layout}}
+    p = _write(tmp_path, m)
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `lighting\.envmap` is a {shape[1]}x{shape[0]} image .*{what}: "
+                                                rf".*env\.exr$"):
+        jio.read_manifest(p)
+
+
+@pytest.mark.parametrize("per_view", [False, True])
+def test_non_unit_normal_map_names_the_field(tmp_path, per_view):
+    _, inside = _sphere_image()
+    nmap = np.zeros((N, N, 3), np.float32)
+    nmap[inside] = [0.0, 0.0, 0.9]  # not unit length
+    jio.write_image(tmp_path / "n.exr", nmap)
+    view = {"camera": ORTHO, **({"normal_map": "n.exr"} if per_view else {})}
+    m = {"views": [view], "lighting": UP, "brdf": {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.1, "mu": 1.5,
+                                                    "sigma": 0.2}}
+    if not per_view:
+        m["geometry"] = {"normal_map": "n.exr"}
+    p = _write(tmp_path, m)
+    field = r"views\[0\]\.normal_map" if per_view else r"geometry\.normal_map"
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `{field}` cannot be used: .*n\.exr.*unit vectors"):
+        render_manifest(p, tmp_path / "out", progress=False)
+
+
+@pytest.mark.parametrize("channels, alpha", [(1, None), (2, "ignore")])
+def test_image_channels_error_starts_with_the_manifest(tmp_path, channels, alpha):
+    img, _ = _sphere_image()
+    codes = np.round(img[..., :1] * 255)
+    if channels == 2:
+        codes = np.concatenate([codes, np.full_like(codes, 255)], -1)  # grey + alpha
+    _write_oiio(tmp_path / "img.png", codes.astype(np.uint8), "uint8")
+    p = _fit_manifest_file(tmp_path, "img.png", encoding="linear", **({"alpha": alpha} if alpha else {}))
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `views\[0\]\.image` must have 3 colour channels \(RGB\), got 1 "
+                                                r"\(alpha not counted\): .*img\.png$"):
+        fit_manifest(p, tmp_path / "out", progress=False)
+
+
+# ----------------------------------------------------------------------------- views[k].alpha
+
+
+def _rgba_capture(tmp_path):
+    """A 16-bit linear capture as RGB and as RGBA PNG (the same colour codes), alpha 0 on the left 5 columns."""
+    img, inside = _sphere_image()
+    codes = np.round(img * 65535).astype(np.uint16)
+    assert codes.max() < 65535  # nothing saturates
+    alpha = np.full((N, N, 1), 65535, np.uint16)
+    alpha[:, :5] = 0
+    alpha[:, 5] = 32768  # just above half of full scale: kept
+    _write_oiio(tmp_path / "rgb.png", codes, "uint16")
+    _write_oiio(tmp_path / "rgba.png", np.concatenate([codes, alpha], -1), "uint16")
+    return inside, alpha[..., 0]
+
+
+def test_alpha_must_be_declared(tmp_path):
+    _rgba_capture(tmp_path)
+    p = _fit_manifest_file(tmp_path, "rgba.png", encoding="linear")
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `views\[0\]\.alpha` is required: the image .*rgba\.png has an "
+                                                "alpha channel"):
+        jio.read_manifest(p)
+    m = json.loads(open(p).read())
+    m["views"][0]["alpha"] = "premultiplied"
+    with pytest.raises(jio.ManifestError, match=r"`views\[0\]\.alpha` must be one of \"ignore\", \"mask\""):
+        jio.read_manifest(_write(tmp_path, m))
+    from tests.test_manifest import _validator
+
+    assert list(_validator().iter_errors(m))
+
+
+def test_alpha_ignore_and_mask(tmp_path):
+    inside, alpha = _rgba_capture(tmp_path)
+    rgb = fit_manifest(_fit_manifest_file(tmp_path, "rgb.png", encoding="linear"), tmp_path / "rgb", progress=False)
+    ign = fit_manifest(_fit_manifest_file(tmp_path, "rgba.png", encoding="linear", alpha="ignore"), tmp_path / "ign",
+                       progress=False)
+    assert ign["samples"] == rgb["samples"] and rgb["samples"]["valid"] == int(inside.sum())
+    assert ign["brdf"] == rgb["brdf"]
+    # "mask": the pixels with alpha 0 (the left 5 columns) are not samples; alpha 32768 > 65535 / 2 is kept
+    m = {"geometry": SPHERE, "encoding": "linear", "alpha": "mask",  # the top-level default
+         "views": [{"image": "rgba.png", "camera": ORTHO}], "lighting": UP, "brdf": None}
+    _schema_ok(m)
+    msk = fit_manifest(_write(tmp_path, m), tmp_path / "msk", progress=False)
+    want = int((inside & (alpha > 65535 / 2)).sum())
+    assert msk["samples"]["valid"] == want and want < int(inside.sum()) - 10
+    # the RGB file with "mask" declared: no alpha channel, nothing dropped
+    res = fit_manifest(_fit_manifest_file(tmp_path, "rgb.png", encoding="linear", alpha="mask"), tmp_path / "rgbm",
+                       progress=False)
+    assert res["samples"]["valid"] == int(inside.sum())
+
+
+def test_mask_file_with_transparent_alpha_names_the_field(tmp_path):
+    img, _ = _sphere_image()
+    jio.write_image(tmp_path / "img.exr", img.astype(np.float32))
+    mask = np.full((N, N, 2), 255, np.uint8)
+    mask[0, 0, 1] = 0  # grey + alpha, not opaque: which channel is the mask?
+    _write_oiio(tmp_path / "mask.png", mask, "uint8")
+    p = _fit_manifest_file(tmp_path, "img.exr", mask="mask.png")
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `views\[0\]\.mask` cannot be used: .*mask\.png"):
+        fit_manifest(p, tmp_path / "out", progress=False)
