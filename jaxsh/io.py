@@ -49,6 +49,7 @@ __all__ = [
     "read_normal_map",
     "read_texture",
     "read_rbf",
+    "recorded_camera",
     "write_rbf",
     "read_manifest",
     "read_mesh",
@@ -416,13 +417,18 @@ def _write_pixels(path: str, spec, data) -> None:
         out.close()
 
 
-def write_image(path, array, *, exposure: float = 0.0) -> None:
+def write_image(path, array, *, exposure: float = 0.0, camera: dict | None = None) -> None:
     """Write a float image `(H, W)` or `(H, W, C)`, atomically (`atomic_output`).
 
     EXR/PFM/TIFF store linear float values; HDR (RGBE) stores non-negative
     values with an 8-bit shared-exponent mantissa. PNG/JPEG are for viewing:
     the values are scaled by `2**exposure`, clipped to [0, 1] and
     sRGB-encoded to 8 bits (read them back with `encoding="srgb"`).
+
+    `camera`: a camera block as `read_manifest` returns it (`views[k]["camera"]`),
+    recorded in the header of an EXR file (attribute `jaxsh:camera`, JSON) for
+    maps that hold one value per pixel of that camera (the texture maps of
+    `jaxsh fit`); `recorded_camera` reads it back. EXR only.
 
     Impossible or lossy writes are errors (`ValueError` naming the file):
     complex or non-numeric arrays, non-finite values (with their count), and
@@ -448,12 +454,19 @@ def write_image(path, array, *, exposure: float = 0.0) -> None:
         n = int(np.count_nonzero(arr < 0))
         raise ValueError(f"{path}: refusing to write negative values: RGBE (.hdr) cannot store them ({n} values < 0)")
     h, w, c = arr.shape
+    if camera is not None:
+        if ext != ".exr":
+            raise ValueError(f"{path}: a `camera` is recorded in EXR headers only")
+        if (camera.get("width"), camera.get("height")) != (w, h):
+            raise ValueError(f"{path}: `camera` is {camera.get('width')}x{camera.get('height')} but the map {w}x{h}")
     if ext in _LDR:
         data = np.clip(_linear_to_srgb(np.clip(arr * 2.0**exposure, 0.0, 1.0)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
         spec = oiio.ImageSpec(w, h, c, "uint8")
     else:
         data = arr
         spec = oiio.ImageSpec(w, h, c, "float")
+    if camera is not None:
+        spec.attribute(_CAMERA_ATTR, _camera_json(camera))
     with atomic_output(path) as tmp:
         try:
             _write_pixels(tmp, spec, data)
@@ -554,7 +567,8 @@ def read_texture(path, channels: int = 3) -> np.ndarray:
 RBF_FORMAT = "jaxsh-rbf-1"
 
 
-def write_rbf(path, model, *, spatial: bool, width: int | None = None, height: int | None = None) -> None:
+def write_rbf(path, model, *, spatial: bool, width: int | None = None, height: int | None = None,
+              camera: dict | None = None) -> None:
     """Write an RBF reflectance (Zickler 2006 eqs. 12-13) to an `.npz` file, atomically.
 
     **Arguments:**
@@ -567,7 +581,10 @@ def write_rbf(path, model, *, spatial: bool, width: int | None = None, height: i
 
     The file holds `format` (`RBF_FORMAT`), `centers` `(K, d)`, `weights`
     `(K, C)`, `poly` `(d + 1, C)`, `scale` `(d,)`, `spatial`, `width`,
-    `height` (−1 when not spatial), all float64 / int64 — no pickles.
+    `height` (−1 when not spatial), all float64 / int64 — no pickles; and,
+    when `camera` (a camera block of `read_manifest`, of that size) is given,
+    `camera`: the camera of that pixel grid as a JSON string
+    (`recorded_camera`).
     """
     path = os.fspath(path)
     centers = np.asarray(model.centers, np.float64)
@@ -583,6 +600,10 @@ def write_rbf(path, model, *, spatial: bool, width: int | None = None, height: i
     arrays = {"format": np.asarray(RBF_FORMAT), "centers": centers, "weights": w, "poly": poly,
               "scale": np.asarray(model.scale, np.float64), "spatial": np.asarray(bool(spatial)),
               "width": np.asarray(-1 if width is None else int(width)), "height": np.asarray(-1 if height is None else int(height))}
+    if camera is not None:
+        if not spatial or (camera.get("width"), camera.get("height")) != (width, height):
+            raise ValueError(f"{path}: a `camera` is recorded for a spatial RBF only, of its `width` x `height`")
+        arrays["camera"] = np.asarray(_camera_json(camera))
     for k, a in arrays.items():
         if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
             raise ValueError(f"{path}: refusing to write non-finite RBF `{k}`")
@@ -1185,7 +1206,7 @@ def _brdf_block(r: _Reader, b, views: list):
                 if (c["width"], c["height"]) != (rbf["width"], rbf["height"]):
                     raise r.err(f"views[{k}].camera", f"is {c['width']}x{c['height']} but the spatial RBF {p} has surface "
                                                       f"coordinates in a {rbf['width']}x{rbf['height']} pixel grid")
-            _one_pixel_grid(r, views, f"the spatial RBF `brdf.file` {p} takes its surface coordinates from")
+            _one_pixel_grid(r, views, f"the spatial RBF `brdf.file` {p} takes its surface coordinates from", p)
         return {"model": "rbf", "file": p, "spatial": rbf["spatial"], "rbf": rbf}
     r.obj(b, "brdf", {"model", "kd", "ks", "mu", "sigma"}, required=("model", "kd", "ks", "sigma"))
     if "mu" not in b:
@@ -1207,16 +1228,27 @@ def _brdf_block(r: _Reader, b, views: list):
             if tex.shape[:2] != (c["height"], c["width"]):
                 raise r.err(f"brdf.{key}", f"is a {tex.shape[1]}x{tex.shape[0]} map but `views[{k}].camera` is "
                                            f"{c['width']}x{c['height']}: a texture map is in the views' pixel grid ({p})")
-        _one_pixel_grid(r, views, f"the texture map `brdf.{key}` {p} is in")
+        _one_pixel_grid(r, views, f"the texture map `brdf.{key}` {p} is in", p)
         out[key] = tex
         out["files"][key] = p
     return out
 
 
-def _one_pixel_grid(r: _Reader, views: list, what: str) -> None:
+def _one_pixel_grid(r: _Reader, views: list, what: str, path: str) -> None:
     """Maps in a pixel grid (texture maps, a spatial RBF's surface coordinates) hold values per pixel of one camera:
-    `views[0].camera`'s; every view must have that camera (pose and intrinsics), else the values would stick to the
-    image, not the surface."""
+    the one the file records (`recorded_camera`), else `views[0].camera`'s; every view must have that camera (pose
+    and intrinsics), else the values would stick to the image, not the surface."""
+    try:
+        rec = recorded_camera(path)
+    except ValueError as e:
+        raise ManifestError(f"{r.path}: {e}") from None
+    if rec is not None:
+        for k, view in enumerate(views):
+            if not _same_camera(view["camera"], rec):
+                raise r.err(f"views[{k}].camera", f"is not the camera {what}: the file records the camera it was "
+                                                  "made for (the fit's), and the values would stick to the image, "
+                                                  "not to the surface; render that camera under new lights")
+        return
     for k, view in enumerate(views[1:], 1):
         if not _same_camera(view["camera"], views[0]["camera"]):
             raise r.err(f"views[{k}].camera", f"differs from `views[0].camera`: {what} the pixel grid of one camera, "
@@ -1228,6 +1260,64 @@ def _same_camera(a: dict, b: dict) -> bool:
     if a.keys() != b.keys():
         return False
     return all(np.array_equal(a[k], b[k]) if k == "cam_to_world" else a[k] == b[k] for k in a)
+
+
+# The header attribute (EXR) / array (RBF .npz) holding the camera of a per-pixel map.
+_CAMERA_ATTR = "jaxsh:camera"
+_CAMERA_KEYS = {"pinhole": ("fx", "fy", "cx", "cy"), "orthographic": ("scale",)}
+
+
+def _camera_json(cam: dict) -> str:
+    """A camera block of `read_manifest` as JSON (cx, cy in jaxsh's pixel coordinates; floats round-trip exactly)."""
+    model = cam.get("model")
+    if model not in _CAMERA_KEYS:
+        raise ValueError(f'`camera` must be a camera block of read_manifest (model "pinhole" or "orthographic"), '
+                         f"got model {model!r}")
+    out = {"model": model, **{k: float(cam[k]) for k in _CAMERA_KEYS[model]},
+           "width": int(cam["width"]), "height": int(cam["height"]),
+           "cam_to_world": np.asarray(cam["cam_to_world"], np.float64).tolist()}
+    return json.dumps(out)
+
+
+def _camera_from_json(text: str, path: str) -> dict:
+    try:
+        raw = json.loads(text)
+        cam = {"model": raw["model"], **{k: float(raw[k]) for k in _CAMERA_KEYS[raw["model"]]},
+               "width": int(raw["width"]), "height": int(raw["height"]),
+               "cam_to_world": np.asarray(raw["cam_to_world"], np.float64).reshape(4, 4)}
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: its recorded camera (`{_CAMERA_ATTR}`) cannot be read: {e}") from None
+    return cam
+
+
+def recorded_camera(path) -> dict | None:
+    """The camera a per-pixel map was made for, if its file records one, else None.
+
+    `jaxsh fit` records it in the texture maps it writes (`kd.exr`, `ks.exr`:
+    EXR header attribute `jaxsh:camera`) and in a spatial RBF file
+    (`brdf_rbf.npz`, array `camera`). **Returns:** a camera block like
+    `read_manifest`'s `views[k]["camera"]` (`model`, intrinsics with `cx`, `cy`
+    in jaxsh's pixel coordinates, `width`, `height`, `cam_to_world` `(4, 4)`),
+    or None for files without one (maps made elsewhere, `.npy`, PFM).
+    """
+    path = os.fspath(path)
+    _check_readable(path, "map")
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                text = str(z["camera"]) if "camera" in z.files else None
+        except (ValueError, OSError, EOFError) as e:
+            raise ValueError(f"cannot read {path!r}: {e}") from None
+    elif ext == ".exr":
+        inp = _open(path)
+        try:
+            text = inp.spec().get_string_attribute(_CAMERA_ATTR, "") or None
+        finally:
+            inp.close()
+    else:
+        return None
+    return None if text is None else _camera_from_json(text, path)
 
 
 def read_mesh(path):

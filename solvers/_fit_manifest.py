@@ -270,7 +270,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         hh, ww = texel.shape
         for key in ("kd",) + (("ks",) if textured == "kd_ks" else ()):
             a = np.where(seen[:, None], np.asarray(getattr(brdf, key)), 0.0).reshape(hh, ww, -1)
-            jio.write_image(out(f"{key}.exr"), a)
+            jio.write_image(out(f"{key}.exr"), a, camera=m["views"][0]["camera"])  # the map's camera, for render
             brdf_json[key] = f"{key}.exr"
         if textured == "kd":  # one Ks for all texels (broadcast to (T, C) by the fit)
             brdf_json["ks"] = _json(np.asarray(brdf.ks).reshape(-1, np.shape(brdf.ks)[-1])[0])
@@ -418,7 +418,8 @@ def _fit_sharing(m, gbs, imgs, masks, extras, lights, known, outs, timings, say,
     lmax = int(solve["lighting_lmax"])
     _write_lighting(outs.__getitem__, known.total_sh(lmax), lmax)
     model = res.fit.model
-    jio.write_rbf(outs["brdf_rbf.npz"], model, spatial=spatial, width=ww if spatial else None, height=hh if spatial else None)
+    jio.write_rbf(outs["brdf_rbf.npz"], model, spatial=spatial, width=ww if spatial else None, height=hh if spatial else None,
+                  camera=m["views"][0]["camera"] if spatial else None)
     block = {"model": "rbf", "spatial": spatial, "rbf": {"model": model, "spatial": spatial, "width": ww, "height": hh}}
     for k, (g, extra, lit) in enumerate(zip(gbs, extras, lights)):
         img = render_rbf_view(block, g, np.asarray(lit.fast_directions), np.asarray(lit.fast_energy),

@@ -140,6 +140,17 @@ def test_textured_kd_writes_maps_that_render(capture):
     brdf = {**result["brdf"], "kd": str(root / "textured" / "kd.exr")}
     for got, d in zip(_render_held(root, "textured", brdf), HELD):
         assert _rel(got, _reference(g, d, tex), mask) < 1e-3
+    # the map records the camera it was fitted in: a single view on another pose is refused by `jaxsh render`
+    rec = jaxsh.io.recorded_camera(root / "textured" / "kd.exr")
+    np.testing.assert_array_equal(rec["cam_to_world"], np.asarray(CAM["cam_to_world"], float))
+    assert (rec["model"], rec["width"], rec["height"]) == (CAM["model"], CAM["width"], CAM["height"])
+    moved = {**CAM, "cam_to_world": np.asarray(jaxsh.look_at([5, 0, 0], [0, 0, 0])).tolist()}
+    bad = {"geometry": {"sphere": {"center": [0, 0, 0], "radius": 1}}, "views": [{"camera": moved}],
+           "lighting": {"directional": [{"direction": [0, 0, 1], "radiance": 1}]}, "brdf": brdf}
+    (root / "moved.json").write_text(json.dumps(bad))
+    with pytest.raises(jaxsh.io.ManifestError, match=r"moved\.json: `views\[0\]\.camera` is not the camera the "
+                                                     r"texture map `brdf\.kd` .*kd\.exr is in"):
+        jaxsh.io.read_manifest(root / "moved.json")
 
 
 def _lambertian_error(root, g, kd_fit_images, held_images):
@@ -195,6 +206,11 @@ def test_sharing_spatial_predicts_a_textured_object(capture):
     (root / "bad_grid.json").write_text(json.dumps(bad))
     with pytest.raises(jaxsh.io.ManifestError, match=r"views\[0\]\.camera.*pixel grid"):
         jaxsh.io.read_manifest(root / "bad_grid.json")
+    # and to its camera, which the file records: the same size on another pose is refused too
+    bad["views"] = [{"camera": {**CAM, "cam_to_world": np.asarray(jaxsh.look_at([0, 5, 0], [0, 0, 0])).tolist()}}]
+    (root / "moved.json").write_text(json.dumps(bad))
+    with pytest.raises(jaxsh.io.ManifestError, match=r"`views\[0\]\.camera` is not the camera the spatial RBF"):
+        jaxsh.io.read_manifest(root / "moved.json")
 
 
 def test_8bit_srgb_capture(tmp_path):

@@ -380,3 +380,46 @@ def test_mask_file_with_transparent_alpha_names_the_field(tmp_path):
     p = _fit_manifest_file(tmp_path, "img.exr", mask="mask.png")
     with pytest.raises(jio.ManifestError, match=rf"^{p}: `views\[0\]\.mask` cannot be used: .*mask\.png"):
         fit_manifest(p, tmp_path / "out", progress=False)
+
+
+def test_recorded_camera_round_trips_exactly(tmp_path):
+    """`write_image(camera=)` / `write_rbf(camera=)` record a manifest camera; `recorded_camera` gives it back
+    exactly (the JSON of float64 values round-trips), and files without one give None."""
+    cam = {"model": "pinhole", "fx": 801.25, "fy": 799.5, "cx": 320.1 + 0.5, "cy": 0.1 + 0.2, "width": 4, "height": 3,
+           "cam_to_world": np.asarray(jaxsh.look_at([0.3, -2.0, 1.1], [0, 0, 0]), np.float64)}
+    jio.write_image(tmp_path / "k.exr", np.ones((3, 4, 3)), camera=cam)
+    back = jio.recorded_camera(tmp_path / "k.exr")
+    assert jio._same_camera(back, cam)
+    np.testing.assert_array_equal(jio.read_texture(tmp_path / "k.exr"), np.ones((3, 4, 3)))
+    jio.write_image(tmp_path / "plain.exr", np.ones((3, 4, 3)))
+    assert jio.recorded_camera(tmp_path / "plain.exr") is None
+    np.save(tmp_path / "k.npy", np.ones((3, 4, 3)))
+    assert jio.recorded_camera(tmp_path / "k.npy") is None
+    with pytest.raises(ValueError, match=r"k\.pfm: a `camera` is recorded in EXR headers only"):
+        jio.write_image(tmp_path / "k.pfm", np.ones((3, 4, 3)), camera=cam)
+    with pytest.raises(ValueError, match=r"`camera` is 4x3 but the map 5x3"):
+        jio.write_image(tmp_path / "k5.exr", np.ones((3, 5, 3)), camera=cam)
+    model = jaxsh.RBFModel(np.zeros((2, 5)), np.zeros((2, 3)), np.zeros((6, 3)), np.ones(5))
+    jio.write_rbf(tmp_path / "s.npz", model, spatial=True, width=4, height=3, camera=cam)
+    assert jio._same_camera(jio.recorded_camera(tmp_path / "s.npz"), cam)
+    assert jio.read_rbf(tmp_path / "s.npz")["spatial"]
+    jio.write_rbf(tmp_path / "s0.npz", model, spatial=True, width=4, height=3)
+    assert jio.recorded_camera(tmp_path / "s0.npz") is None
+    with pytest.raises(ValueError, match="spatial RBF only, of its `width` x `height`"):
+        jio.write_rbf(tmp_path / "s1.npz", model, spatial=True, width=5, height=3, camera=cam)
+
+
+def test_texture_map_with_a_recorded_camera_needs_that_camera(tmp_path):
+    """A map that records its camera refuses every other camera, views[0] included; its own camera renders."""
+    cam = jio.read_manifest(_write(tmp_path, {"geometry": SPHERE, "views": [{"camera": ORTHO}], "lighting": UP,
+                                                "brdf": None}))["views"][0]["camera"]
+    jio.write_image(tmp_path / "kd.exr", _kd_map(), camera=cam)
+    np.save(tmp_path / "ks.npy", np.zeros((N, N, 3)))
+    brdf = {"model": "torrance_sparrow", "kd": "kd.exr", "ks": "ks.npy", "mu": None, "sigma": 0.2}
+    side = {**ORTHO, "cam_to_world": np.asarray(jaxsh.look_at([5, 0, 0], [0, 0, 0])).tolist()}
+    m = {"geometry": SPHERE, "views": [{"camera": side}], "lighting": UP, "brdf": brdf}
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `views\[0\]\.camera` is not the camera the texture map "
+                                                r"`brdf\.kd` .*kd\.exr is in"):
+        jio.read_manifest(_write(tmp_path, m))
+    m["views"] = [{"camera": ORTHO}]
+    assert jio.read_manifest(_write(tmp_path, m))["brdf"]["kd"].shape == (N, N, 3)
