@@ -888,7 +888,7 @@ def _show(v) -> str:
 def _lighting(r: _Reader, v, where: str):
     if v is None:
         return None
-    r.obj(v, where, {"envmap", "up", "layout", "encoding", "directional"})
+    r.obj(v, where, {"envmap", "up", "layout", "encoding", "rotation", "directional"})
     env = None if v.get("envmap") is None else r.file(v["envmap"], f"{where}.envmap", must_exist=True)
     up = r.choice(v.get("up", "+z"), f"{where}.up", ("+z", "+y"))
     layout = r.choice(v.get("layout", "latlong"), f"{where}.layout", ("latlong", "angular"))
@@ -906,6 +906,18 @@ def _lighting(r: _Reader, v, where: str):
         if layout == "angular" and fw != fh:
             raise r.err(f"{where}.envmap", f"is a {fw}x{fh} image but an angular map (`{where}.layout` \"angular\") "
                                            f"must be square: {env}")
+    rot = None
+    if v.get("rotation") is not None:
+        if env is None:
+            raise r.err(f"{where}.rotation", "turns an `envmap` into the world frame; there is none (`directional` "
+                                             "sources are given in the world frame)")
+        rows = v["rotation"]
+        w = f"{where}.rotation"
+        if not isinstance(rows, list) or len(rows) != 3 or not all(isinstance(x, list) and len(x) == 3 for x in rows):
+            raise r.err(w, f"must be a 3x3 matrix (a list of 3 rows of 3 numbers), got {_show(rows)}")
+        rot = np.array([[r.number(x, f"{w}[{i}][{j}]") for j, x in enumerate(row)] for i, row in enumerate(rows)])
+        if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6 or np.linalg.det(rot) < 0:
+            raise r.err(w, "must be a rotation (orthonormal within 1e-6, det +1)")
     dirs_raw = v.get("directional")
     dirs = []
     if dirs_raw is not None:
@@ -921,7 +933,7 @@ def _lighting(r: _Reader, v, where: str):
             dirs.append({"direction": d / norm, "radiance": r.rgb(s["radiance"], f"{w}.radiance")})
     if env is None and not dirs:
         raise ManifestError(f"{r.path}: `{where}` has neither an `envmap` nor `directional` sources")
-    return {"envmap": env, "up": up, "layout": layout, "encoding": enc, "directional": dirs}
+    return {"envmap": env, "up": up, "layout": layout, "encoding": enc, "rotation": rot, "directional": dirs}
 
 
 def _camera(r: _Reader, cam, where: str, image_info):
@@ -1037,7 +1049,7 @@ def read_manifest(path) -> dict:
       `saturation` defaults to the image's maximum code value for integer images; `alpha` (the
       view's, else the top-level one) is required when the image has an alpha channel;
     - `lighting`: None (unknown) or `{"envmap": abs_path | None, "up", "layout", "encoding",
-      "directional": [{"direction": (3,) unit, "radiance": (3,)}]}`;
+      "rotation": (3, 3) | None, "directional": [{"direction": (3,) unit, "radiance": (3,)}]}`;
     - `brdf`: None (unknown), `{"model": "torrance_sparrow", "kd", "ks", "mu": float | None, "sigma",
       "files": {"kd"?: abs_path, "ks"?: abs_path}}` with `kd`, `ks` each `(3,)` or a texture map
       `(H, W, 3)` read from the file the manifest names (`read_texture`; the views' pixel grid), or `{"model": "rbf", "file": abs_path, "spatial": bool,

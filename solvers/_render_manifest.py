@@ -75,6 +75,8 @@ def lighting_from_block(lit: dict, sigma: float, lmax: int | None = None, *, man
         if lmax is None:
             lmax = int(min(math.ceil(4.0 / sigma), h // 2 - 1))
         slow = jaxsh.project_latlong(env[..., :3], lmax)
+        if lit.get("rotation") is not None:  # map frame -> world: the world's lighting is L(R^T w)
+            slow = np.asarray(jaxsh.rotate_sh(slow, np.asarray(lit["rotation"], np.float64), channels=True))
     fd = fe = None
     if lit["directional"]:
         fd = np.stack([s["direction"] for s in lit["directional"]])

@@ -423,3 +423,55 @@ def test_texture_map_with_a_recorded_camera_needs_that_camera(tmp_path):
         jio.read_manifest(_write(tmp_path, m))
     m["views"] = [{"camera": ORTHO}]
     assert jio.read_manifest(_write(tmp_path, m))["brdf"]["kd"].shape == (N, N, 3)
+
+
+# ----------------------------------------------------------------------------- lighting.rotation
+
+
+def test_envmap_rotation_turns_the_map_into_the_world_frame(tmp_path):
+    """A probe map holding f(w) = 1 + d.w in the library frame, with `rotation` R, is the world lighting
+    1 + (R d).w: its l = 1 coefficients are sqrt(4 pi / 3) (R d)_(y, z, x) and its l = 0 one sqrt(4 pi) (closed
+    forms of the orthonormal real basis, conventions.md), on every channel. Also from a "+y"-up file, whose pixels are
+    placed by the documented convention (row 0 at +y, u = 0.5 along -z, u = 0.75 along +x). A transposed R would
+    put the lobe at R^T d."""
+    from solvers._render_manifest import lighting_from_manifest
+
+    h = 16
+    d = np.array([0.48, -0.6, 0.64])
+    ang = 0.7
+    rz = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(0.4), -np.sin(0.4)], [0, np.sin(0.4), np.cos(0.4)]])
+    rot = rz @ rx
+    lib = np.asarray(jaxsh.latlong_directions(h, 2 * h), np.float64)  # +z file: library directions
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    alpha = 2 * np.pi * (np.arange(2 * h) + 0.5) / (2 * h)
+    st = np.sin(theta)[:, None]
+    file_y = np.stack([-st * np.sin(alpha), np.broadcast_to(np.cos(theta)[:, None], (h, 2 * h)),
+                       st * np.cos(alpha)], -1)  # file-frame directions of a +y-up lat-long map
+    for up, dirs in (("+z", lib), ("+y", file_y @ jio.Y_UP_TO_Z_UP.T)):  # library direction = M v
+        jio.write_image(tmp_path / "probe.exr", np.repeat((1.0 + dirs @ d)[..., None], 3, -1))
+        lit = {"envmap": "probe.exr", "up": up, "rotation": rot.tolist()}
+        m = {"geometry": SPHERE, "views": [{"camera": ORTHO}], "lighting": lit, "brdf": None}
+        _schema_ok(m)
+        slow, _, _ = lighting_from_manifest(jio.read_manifest(_write(tmp_path, m)), 0.5, 2)
+        slow = np.asarray(slow)
+        want1 = np.sqrt(4 * np.pi / 3) * (rot @ d)[[1, 2, 0]]
+        tol = 1e-6  # the EXR stores float32
+        np.testing.assert_allclose(slow[0], np.sqrt(4 * np.pi), atol=tol)
+        np.testing.assert_allclose(slow[1:4], np.repeat(want1[:, None], 3, 1), atol=tol)
+        np.testing.assert_allclose(slow[4:9], 0.0, atol=tol)
+        assert np.abs(slow[1:4, 0] - np.sqrt(4 * np.pi / 3) * (rot.T @ d)[[1, 2, 0]]).max() > 0.1
+
+
+def test_envmap_rotation_errors(tmp_path):
+    jio.write_image(tmp_path / "probe.exr", np.ones((8, 16, 3)))
+    base = {"geometry": SPHERE, "views": [{"camera": ORTHO}], "brdf": None}
+    cases = [({"envmap": "probe.exr", "rotation": [[1, 0, 0], [0, 1, 0]]}, r"`lighting\.rotation` must be a 3x3"),
+             ({"envmap": "probe.exr", "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, -1]]},
+              r"`lighting\.rotation` must be a rotation"),
+             ({"envmap": "probe.exr", "rotation": [[1, 0, 0], [0, 1, 0.1], [0, 0, 1]]},
+              r"`lighting\.rotation` must be a rotation"),
+             ({**UP, "rotation": np.eye(3).tolist()}, r"`lighting\.rotation` turns an `envmap`.*there is none")]
+    for lit, msg in cases:
+        with pytest.raises(jio.ManifestError, match=r"m\.json: " + msg):
+            jio.read_manifest(_write(tmp_path, {**base, "lighting": lit}))
