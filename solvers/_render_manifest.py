@@ -143,10 +143,32 @@ def view_geometry(m: dict, k: int, mesh, fd, cache: dict):
     if mesh is not None:
         # `geometry.normals`: interpolated vertex normals of the merged mesh, or the flat normal of each face
         g = jaxsh.mesh_gbuffer(cam, mesh, smooth=geo.get("normals", "smooth") == "smooth")
+        _check_facing(m, k, g, "geometry.mesh", geo["mesh"],
+                      "its triangles are wound inside out (normals pointing into the object); reverse the winding "
+                      "(trimesh: `mesh.invert()`)")
         return g, _mesh_visibility(mesh, g, fd)
     if "sphere" in geo:
         return jaxsh.sphere_gbuffer(cam, geo["sphere"]["center"], geo["sphere"]["radius"]), {}
-    return jaxsh.normal_map_gbuffer(cam, view_normal_map(m, k, cache)), {}
+    field = f"views[{k}].normal_map" if view["normal_map"] else "geometry.normal_map"
+    g = jaxsh.normal_map_gbuffer(cam, view_normal_map(m, k, cache))
+    _check_facing(m, k, g, field, view["normal_map"] or geo["normal_map"],
+                  "normals must be in the world frame and point out of the object; a camera-frame map must be turned "
+                  "into the world frame by the camera's `cam_to_world` rotation (OpenCV camera axes: +y down, +z away "
+                  "from the viewer; many photometric-stereo maps use +y up, +z towards the viewer)")
+    return g, {}
+
+
+def _check_facing(m: dict, k: int, g, field: str, path: str, hint: str) -> None:
+    """A surface seen by a camera faces it: n . v > 0 on the object (up to noise at the silhouette). When most of the
+    object's pixels face away, the normals are in another frame or point inwards; that is a `ManifestError` naming
+    the field and the file (before, the fit stopped with `no_signal` and the render was black)."""
+    mask = np.asarray(g.mask)
+    n_obj = int(mask.sum())
+    away = int(np.count_nonzero(mask & (np.sum(np.asarray(g.normal) * np.asarray(g.view), -1) <= 0)))
+    if n_obj and 2 * away > n_obj:
+        raise jio.ManifestError(
+            f"{m['path']}: `{field}`: {away} of the {n_obj} object pixels of `views[{k}]` have normals facing away "
+            f"from `views[{k}].camera`: {hint}: {path}")
 
 
 def manifest_mesh(m: dict):

@@ -475,3 +475,59 @@ def test_envmap_rotation_errors(tmp_path):
     for lit, msg in cases:
         with pytest.raises(jio.ManifestError, match=r"m\.json: " + msg):
             jio.read_manifest(_write(tmp_path, {**base, "lighting": lit}))
+
+
+# ----------------------------------------------------------------------------- normals facing the camera
+
+
+def _sphere_normals(n=N, scale=2.4 / N):
+    """World normals of the unit sphere under `ORTHO` (by hand; zero off the sphere)."""
+    x, y = _world_xy(n, scale)
+    r2 = x ** 2 + y ** 2
+    inside = r2 < 1
+    return np.stack([x, y, np.sqrt(np.clip(1 - r2, 0, None))], -1) * inside[..., None]
+
+
+@pytest.mark.parametrize("command", ["render", "fit"])
+def test_normal_map_facing_away_is_an_error(tmp_path, command):
+    """A normal map in another axis convention (here y and z flipped, as a +y-up, +z-towards-the-viewer camera map
+    read as world normals under an OpenCV camera) faces away from the camera: an error naming the field and file, for
+    both commands, instead of a `no_signal` fit and a black render. The right map passes."""
+    good = _sphere_normals()
+    np.save(tmp_path / "n_bad.npy", good * np.array([1.0, -1.0, -1.0]))
+    np.save(tmp_path / "n.npy", good)
+    img = (np.clip(good[..., 2], 0, None)[..., None] * np.array([0.6, 0.5, 0.4])).astype(np.float32)
+    jio.write_image(tmp_path / "img.exr", img)
+    for nmap, ok in (("n_bad.npy", False), ("n.npy", True)):
+        view = {"camera": ORTHO, **({"image": "img.exr"} if command == "fit" else {})}
+        brdf = None if command == "fit" else {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.0, "mu": None,
+                                               "sigma": 0.2}
+        m = {"geometry": {"normal_map": nmap}, "views": [view], "lighting": UP, "brdf": brdf}
+        p = _write(tmp_path, m)
+        run = (lambda: render_manifest(p, tmp_path / "out", progress=False)) if command == "render" else \
+            (lambda: fit_manifest(p, tmp_path / "fit", progress=False))
+        if ok:
+            run()
+            continue
+        n_obj = int(np.count_nonzero(good.any(-1)))  # every object pixel faces away
+        with pytest.raises(jio.ManifestError, match=rf"m\.json: `geometry\.normal_map`: {n_obj} of the {n_obj} object "
+                                                    r"pixels of `views\[0\]` have normals facing away .*world frame"
+                                                    r".*n_bad\.npy"):
+            run()
+
+
+def test_mesh_wound_inside_out_is_an_error(tmp_path):
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    sphere.export(tmp_path / "ball.ply")
+    inv = sphere.copy()
+    inv.invert()
+    inv.export(tmp_path / "inside_out.ply")
+    brdf = {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.0, "mu": None, "sigma": 0.2}
+    m = {"geometry": {"mesh": "inside_out.ply"}, "views": [{"camera": ORTHO}], "lighting": UP, "brdf": brdf}
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `geometry\.mesh`: \d+ of the \d+ object pixels of "
+                                                r"`views\[0\]` have normals facing away .*wound inside out.*inside_out"):
+        render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
+    m["geometry"] = {"mesh": "ball.ply"}
+    assert len(render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)) == 2
