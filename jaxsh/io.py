@@ -12,6 +12,11 @@ values are scaled by the format's maximum (255 or 65535) and, for `"srgb"`,
 decoded by the IEC 61966-2-1 transfer function. PNG/JPEG *outputs* are for
 viewing only (written clipped and sRGB-encoded to 8 bits).
 
+**Pixels as displayed, values as stored.** Row 0 is the top of the image as
+displayed (the display window, turned by the EXIF/TIFF orientation tag);
+colour is never multiplied or divided by alpha, and an alpha channel is
+declared by the caller (`read_radiance(..., alpha=)`), never guessed.
+
 Every file this module writes is written atomically (`atomic_output`): to a
 temporary file in the same folder, then renamed over the target, so an
 interrupted run never leaves a half-written file.
