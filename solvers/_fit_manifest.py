@@ -152,7 +152,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
             if (info["width"], info["height"]) != (c["width"], c["height"]):
                 raise jio.ManifestError(f"{m['path']}: `views[{k}].mask` is {info['width']}x{info['height']} but "
                                         f"`views[{k}].camera` is {c['width']}x{c['height']}: {view['mask']}")
-    mesh = manifest_mesh(m)
+    surface = manifest_mesh(m)  # the object's triangles (trimesh) or None; `mesh` is the device mesh
 
     def to_lighting(parts):
         # NumPy parts as they are: `Lighting`'s fields convert them (`as_float_array`: a host copy sent by
@@ -175,8 +175,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     gbs, imgs, masks, extras = [], [], [], []
     maps = {}
     for k in range(n):
-        say(f"view {k + 1}/{n}: G-buffer{' and visibility' if mesh is not None else ''}")
-        g, extra = view_geometry(m, k, mesh, None if known is None else view_light(k).fast_directions, maps)
+        say(f"view {k + 1}/{n}: G-buffer{' and visibility' if surface is not None else ''}")
+        g, extra = view_geometry(m, k, surface, None if known is None else view_light(k).fast_directions, maps)
         img, mask = _read_view(m, k, np.asarray(g.mask))
         gbs.append(g)
         imgs.append(img)

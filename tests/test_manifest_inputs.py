@@ -531,3 +531,31 @@ def test_mesh_wound_inside_out_is_an_error(tmp_path):
         render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
     m["geometry"] = {"mesh": "ball.ply"}
     assert len(render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)) == 2
+
+
+# ----------------------------------------------------------------------------- a mesh in `jaxsh fit`
+
+
+def test_fit_with_a_mesh_recovers_its_render(tmp_path):
+    """`jaxsh fit` with `geometry.mesh` and a Torrance-Sparrow BRDF (the path of howto_multiview_hdr.md sec. 2).
+    `fit_manifest`'s local trimesh shadowed its `mesh` (device-mesh) argument, so this crashed in
+    `shard_observations` ("`mesh` must be a jax.sharding.Mesh ..., got Trimesh"). A plumbing check: the images are
+    `jaxsh render`s of the same manifest, so the fit must give back the BRDF they were made with."""
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=3).export(tmp_path / "ball.ply")
+    n = 24
+    cam = {"model": "orthographic", "scale": 2.4 / n, "width": n, "height": n, "cam_to_world": C2W}
+    dirs = [[0.3, 0.2, 0.93], [-0.5, 0.3, 0.81], [0.1, -0.6, 0.79]]
+    truth = {"model": "torrance_sparrow", "kd": [0.5, 0.4, 0.3], "ks": [0.3, 0.3, 0.3], "mu": None, "sigma": 0.25}
+    views = [{"camera": cam, "lighting": {"directional": [{"direction": d, "radiance": 2.0}]}} for d in dirs]
+    render_manifest(_write(tmp_path, {"geometry": {"mesh": "ball.ply"}, "views": views, "brdf": truth},
+                           "render.json"), tmp_path / "imgs", progress=False)
+    fit_views = [{**v, "image": f"imgs/view_{k:03d}.exr"} for k, v in enumerate(views)]
+    m = {"geometry": {"mesh": "ball.ply"}, "views": fit_views, "brdf": None, "solve": {"fresnel": False}}
+    _schema_ok(m)
+    res = fit_manifest(_write(tmp_path, m), tmp_path / "fit", progress=False)
+    assert res["status"] == "converged"
+    np.testing.assert_allclose(res["brdf"]["kd"], truth["kd"], rtol=1e-4)
+    np.testing.assert_allclose(res["brdf"]["ks"], truth["ks"], rtol=1e-4)
+    assert res["brdf"]["sigma"] == pytest.approx(truth["sigma"], rel=1e-4)
