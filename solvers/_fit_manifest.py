@@ -27,6 +27,7 @@ import os
 import sys
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -207,9 +208,12 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         sat = solve.get("saturation")
         valid = [mk & (np.all(im < sat, -1) if sat is not None else True) for mk, im in zip(masks, imgs)]
         imgs = [np.where(v[..., None], im, 0.0) for v, im in zip(valid, imgs)]
-        obs = observations(gbs, imgs, masks=[np.asarray(g.mask) for g in gbs],
-                           weights=[v.astype(np.float64) for v in valid], **vis)
-        n_valid = int(sum(np.count_nonzero(v & np.asarray(g.mask)) for v, g in zip(valid, gbs)))
+        # `observations` drops weight-0 pixels, so the weights are set afterwards, in its sample order (views in
+        # turn, each view's object pixels in raster order)
+        obs = observations(gbs, imgs, masks=[np.asarray(g.mask) for g in gbs], **vis)
+        w = np.concatenate([v.reshape(-1)[np.asarray(g.mask).reshape(-1)] for v, g in zip(valid, gbs)])
+        obs = eqx.tree_at(lambda o: o.weights, obs, jax.device_put(w.astype(np.asarray(obs.weights).dtype)))
+        n_valid = int(np.count_nonzero(w))
     else:
         obs = observations(gbs, imgs, masks=masks, saturation=solve.get("saturation"), **vis)
         n_valid = obs.n_samples

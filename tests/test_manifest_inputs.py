@@ -559,3 +559,39 @@ def test_fit_with_a_mesh_recovers_its_render(tmp_path):
     np.testing.assert_allclose(res["brdf"]["kd"], truth["kd"], rtol=1e-4)
     np.testing.assert_allclose(res["brdf"]["ks"], truth["ks"], rtol=1e-4)
     assert res["brdf"]["sigma"] == pytest.approx(truth["sigma"], rel=1e-4)
+
+
+def test_fit_rerenders_every_object_pixel_and_counts_them(tmp_path):
+    """The re-renders of `jaxsh fit` are the model at every object pixel, clipped and masked ones included (they
+    were 0 there: `observations` dropped the weight-0 samples), and `samples.total` counts every object pixel while
+    `samples.valid` counts the used ones (docs/results.md). The images are `jaxsh render`s of the same manifest;
+    clipping them at `solve.saturation` removes the brightest pixels, which the re-render must give back."""
+    n = 24
+    cam = {"model": "orthographic", "scale": 2.4 / n, "width": n, "height": n, "cam_to_world": C2W}
+    dirs = [[0.3, 0.2, 0.93], [-0.5, 0.3, 0.81], [0.1, -0.6, 0.79]]
+    truth = {"model": "torrance_sparrow", "kd": [0.5, 0.4, 0.3], "ks": [0.3, 0.3, 0.3], "mu": None, "sigma": 0.25}
+    views = [{"camera": cam, "lighting": {"directional": [{"direction": d, "radiance": 2.0}]}} for d in dirs]
+    render_manifest(_write(tmp_path, {"geometry": SPHERE, "views": views, "brdf": truth}, "render.json"),
+                    tmp_path / "imgs", progress=False)
+    imgs = [np.asarray(jio.read_image(tmp_path / "imgs" / f"view_{k:03d}.exr")) for k in range(3)]
+    x, y = _world_xy(n, 2.4 / n)
+    obj = x ** 2 + y ** 2 < 1  # the sphere's pixels, by hand
+    sat = 0.9
+    clipped = [obj & np.any(im >= sat, -1) for im in imgs]
+    assert all(c.sum() >= 5 for c in clipped)
+    left = np.zeros((n, n), bool)
+    left[:, : n // 2] = True
+    jio.write_image(tmp_path / "left.exr", left.astype(np.float32))  # a mask for view 0: the left half only
+    fit_views = [{**v, "image": f"imgs/view_{k:03d}.exr"} for k, v in enumerate(views)]
+    fit_views[0]["mask"] = "left.exr"
+    m = {"geometry": SPHERE, "views": fit_views, "brdf": None, "solve": {"fresnel": False, "saturation": sat}}
+    res = fit_manifest(_write(tmp_path, m), tmp_path / "fit", progress=False)
+    assert res["status"] == "converged"
+    used = [obj & ~c for c in clipped]
+    used[0] &= left
+    assert res["samples"]["total"] == 3 * int(obj.sum())
+    assert res["samples"]["valid"] == sum(int(u.sum()) for u in used)
+    for k, im in enumerate(imgs):
+        got = np.asarray(jio.read_image(tmp_path / "fit" / f"view_{k:03d}.exr"))
+        np.testing.assert_allclose(got[obj], im[obj], rtol=1e-4, atol=1e-6)  # clipped and masked pixels too
+        np.testing.assert_array_equal(got[~obj], 0.0)
