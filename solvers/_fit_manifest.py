@@ -372,6 +372,8 @@ def _fit_sharing(m, gbs, imgs, masks, extras, lights, known, outs, timings, say,
     dirs = np.stack([np.asarray(lit.fast_directions)[0] for lit in lights])
     irr = np.stack([np.asarray(lit.fast_energy)[0] for lit in lights])
     keep = np.stack([mk & np.asarray(g.mask) for mk, g in zip(masks, gbs)])
+    if solve.get("saturation") is not None:  # the extra threshold of every view, in linear radiance
+        keep &= np.stack([np.all(im < solve["saturation"], -1) for im in imgs])
     keep &= (irr.min(-1) > 0)[:, None, None]  # a black light carries no reflectance sample
     if "fast_visibility" in extras[0]:
         keep &= np.stack([np.asarray(e["fast_visibility"])[..., 0] > 0.5 for e in extras])

@@ -595,3 +595,31 @@ def test_fit_rerenders_every_object_pixel_and_counts_them(tmp_path):
         got = np.asarray(jio.read_image(tmp_path / "fit" / f"view_{k:03d}.exr"))
         np.testing.assert_allclose(got[obj], im[obj], rtol=1e-4, atol=1e-6)  # clipped and masked pixels too
         np.testing.assert_array_equal(got[~obj], 0.0)
+
+
+def test_sharing_honours_solve_saturation(tmp_path):
+    """`solve.saturation` (an extra threshold for all views, manifest.md) drops the clipped pixels from the
+    reflectance samples of `"sharing"` too; it was silently ignored there. Expected counts by hand: object pixels
+    with cos(theta_i) and cos(theta_o) above `min_cos` (0.1) and no channel at or above the threshold."""
+    n = 24
+    cam = {"model": "orthographic", "scale": 2.4 / n, "width": n, "height": n, "cam_to_world": C2W}
+    dirs = np.array([[0.3, 0.2, 0.93], [-0.5, 0.3, 0.81], [0.1, -0.6, 0.79]])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    truth = {"model": "torrance_sparrow", "kd": [0.5, 0.4, 0.3], "ks": [0.3, 0.3, 0.3], "mu": None, "sigma": 0.25}
+    views = [{"camera": cam, "lighting": {"directional": [{"direction": d.tolist(), "radiance": 2.0}]}} for d in dirs]
+    render_manifest(_write(tmp_path, {"geometry": SPHERE, "views": views, "brdf": truth}, "render.json"),
+                    tmp_path / "imgs", progress=False)
+    imgs = [np.asarray(jio.read_image(tmp_path / "imgs" / f"view_{k:03d}.exr")) for k in range(3)]
+    nrm = _sphere_normals(n, 2.4 / n)
+    obj = nrm.any(-1)
+    sat = 0.9
+    fit_views = [{**v, "image": f"imgs/view_{k:03d}.exr"} for k, v in enumerate(views)]
+    counts = {}
+    for s in (None, sat):
+        solve = {"brdf_model": "sharing", "n_centers": 20, **({} if s is None else {"saturation": s})}
+        m = {"geometry": SPHERE, "views": fit_views, "brdf": None, "solve": solve}
+        counts[s] = fit_manifest(_write(tmp_path, m), tmp_path / f"fit{s}", progress=False)["sharing"]["samples_per_view"]
+    for k, (d, im) in enumerate(zip(dirs, imgs)):
+        lit = obj & (nrm @ d > 0.1) & (nrm[..., 2] > 0.1)
+        assert counts[None][k] == int(lit.sum())
+        assert counts[sat][k] == int((lit & ~np.any(im >= sat, -1)).sum()) < counts[None][k]
