@@ -1061,7 +1061,9 @@ def read_manifest(path) -> dict:
       "rbf": read_rbf(file)}`;
     - `solve`: `{"lighting_lmax", "render_lmax", "fresnel", "saturation", "brdf_model", "textured",
       "n_centers", "m_w", "m_xy", "tol", "min_cos", "max_samples"}` with defaults (docs/manifest.md);
-    - `encoding`: the top-level default encoding or None; `path`: the manifest's absolute path.
+    - `encoding`: the top-level default encoding or None; `path`: the manifest's absolute path;
+    - `given`: `{"solve": [...], "views": [[...], ...]}`, the keys the file gives (not null) in `solve` and in
+      each view, for the commands' checks of fields they do not use.
 
     Every problem raises `ManifestError` (a `ValueError`) naming the file and
     the field path (e.g. `views[2].camera.fx`); a missing manifest raises an
@@ -1194,8 +1196,10 @@ def read_manifest(path) -> dict:
             raise r.err("solve.min_cos", f"must be < 1, got {solve['min_cos']}")
     if solve["textured"] is not None and solve["brdf_model"] != "torrance_sparrow":
         raise r.err("solve.textured", f'needs `solve.brdf_model` "torrance_sparrow", got {solve["brdf_model"]!r}')
+    given = {"solve": sorted(k for k, x in s.items() if x is not None),
+             "views": [sorted(k for k, x in v.items() if x is not None) for v in views_raw]}
     return {"path": os.path.abspath(path), "geometry": geometry, "views": views, "lighting": lighting, "brdf": brdf,
-            "solve": solve, "encoding": default_enc}
+            "solve": solve, "encoding": default_enc, "given": given}
 
 
 def _brdf_block(r: _Reader, b, views: list):

@@ -102,13 +102,27 @@ def _inputs(m: dict) -> list[str]:
 def check_unsupported(m: dict, command: str) -> None:
     """Stop with a one-line `ManifestError` on a parsed field the fitting/rendering code cannot use here.
 
-    Every manifest field is used by both commands, with these exceptions: an
+    Every manifest field is used by both commands, with these exceptions: `jaxsh render` does not read captured
+    images, so `views[k].mask`, `exposure`, `saturation` and every `solve` field but `render_lmax` are errors there
+    (a view's `image` may still give the camera's size, with its `encoding` and `alpha`); an
     RBF `brdf` renders under directional sources only (Zickler 2006's
     reflectance is sampled under directional light; an environment map
     would need its integral over the RBF); `solve.brdf_model` other than
     `"torrance_sparrow"` needs one directional source per view.
     """
     b = m["brdf"]
+    if command == "render":
+        given = m.get("given", {})
+        for k, keys in enumerate(given.get("views", [])):
+            for key in ("mask", "exposure", "saturation"):
+                if key in keys:
+                    raise jio.ManifestError(
+                        f"{m['path']}: `views[{k}].{key}` describes a captured image, which `jaxsh render` does not "
+                        "read (it renders the model); remove it, or run `jaxsh fit`")
+        unused = [key for key in given.get("solve", []) if key != "render_lmax"]
+        if unused:
+            raise jio.ManifestError(f"{m['path']}: `solve.{unused[0]}` is a setting of `jaxsh fit`; `jaxsh render` "
+                                    "uses only `solve.render_lmax`")
     if command == "render" and b is not None and b["model"] == "rbf":
         for k, lit in enumerate(view_lighting_blocks(m, command) or [m["lighting"]] * len(m["views"])):
             if lit is not None and lit["envmap"] is not None:

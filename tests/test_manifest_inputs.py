@@ -623,3 +623,29 @@ def test_sharing_honours_solve_saturation(tmp_path):
         lit = obj & (nrm @ d > 0.1) & (nrm[..., 2] > 0.1)
         assert counts[None][k] == int(lit.sum())
         assert counts[sat][k] == int((lit & ~np.any(im >= sat, -1)).sum()) < counts[None][k]
+
+
+@pytest.mark.parametrize("field,value,msg", [
+    ("mask", "m.png", r"`views\[0\]\.mask` describes a captured image, which `jaxsh render` does not read"),
+    ("exposure", 0.5, r"`views\[0\]\.exposure` describes a captured image"),
+    ("saturation", 0.5, r"`views\[0\]\.saturation` describes a captured image"),
+    ("solve.fresnel", False, r"`solve\.fresnel` is a setting of `jaxsh fit`; `jaxsh render` uses only "
+                             r"`solve\.render_lmax`"),
+    ("solve.brdf_model", "sharing", r"`solve\.brdf_model` is a setting of `jaxsh fit`")])
+def test_render_refuses_fields_it_does_not_use(tmp_path, field, value, msg):
+    """`jaxsh render` reads no captured image: a mask, exposure or saturation (or a fit setting) would have been
+    silently ignored (the render was byte-identical); it is an error before any output, naming the field."""
+    jio.write_image(tmp_path / "m.png", np.ones((N, N, 3)))
+    brdf = {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.0, "mu": None, "sigma": 0.2}
+    view = {"camera": ORTHO}
+    m = {"geometry": SPHERE, "views": [view], "lighting": UP, "brdf": brdf}
+    if field.startswith("solve."):
+        m["solve"] = {field[6:]: value, "render_lmax": 4}
+    else:
+        view[field] = value
+    with pytest.raises(jio.ManifestError, match=r"m\.json: " + msg):
+        render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+    m["solve"] = {"render_lmax": 4}
+    view.pop(field, None)
+    assert len(render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)) == 2
