@@ -895,8 +895,8 @@ def _lighting(r: _Reader, v, where: str):
         return None
     r.obj(v, where, {"envmap", "up", "layout", "encoding", "rotation", "directional"})
     env = None if v.get("envmap") is None else r.file(v["envmap"], f"{where}.envmap", must_exist=True)
-    up = r.choice(v.get("up", "+z"), f"{where}.up", ("+z", "+y"))
-    layout = r.choice(v.get("layout", "latlong"), f"{where}.layout", ("latlong", "angular"))
+    up = "+z" if v.get("up") is None else r.choice(v["up"], f"{where}.up", ("+z", "+y"))
+    layout = "latlong" if v.get("layout") is None else r.choice(v["layout"], f"{where}.layout", ("latlong", "angular"))
     enc = None if v.get("encoding") is None else r.choice(v["encoding"], f"{where}.encoding", ENCODINGS)
     if env is not None:
         info = r.image_info(env, f"{where}.envmap")

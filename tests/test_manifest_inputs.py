@@ -649,3 +649,89 @@ def test_render_refuses_fields_it_does_not_use(tmp_path, field, value, msg):
     m["solve"] = {"render_lmax": 4}
     view.pop(field, None)
     assert len(render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)) == 2
+
+
+# ----------------------------------------------------------------------------- null equals absent
+
+
+def _same(a, b):
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return isinstance(b, (list, tuple)) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return np.array_equal(np.asarray(a), np.asarray(b))
+    if isinstance(a, jaxsh.RBFModel):
+        return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("centers", "weights", "poly", "scale"))
+    return a == b
+
+
+def test_null_equals_absent_for_every_optional_field(tmp_path):
+    """manifest.md: `null` equals absent for every optional field. Each optional field of each block, set to null,
+    gives the same `read_manifest` result as the field left out, and the schema accepts both (`up` and `layout`
+    were refused by the reader; `geometry.mesh`/`sphere`/`normal_map`, a null `geometry` and the RBF's `spatial`,
+    `n_centers` by the schema)."""
+    jio.write_image(tmp_path / "probe.exr", np.ones((8, 16, 3)))
+    jio.write_image(tmp_path / "img.exr", np.ones((N, N, 3)))
+    np.save(tmp_path / "n.npy", _sphere_normals())
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=1).export(tmp_path / "ball.ply")
+    model = jaxsh.RBFModel(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((4, 3)), np.ones(3))
+    jio.write_rbf(tmp_path / "r.npz", model, spatial=False)
+    env = {"envmap": "probe.exr", "directional": [{"direction": [0, 0, 1], "radiance": 1.0}]}
+    ts = {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.1, "mu": 1.5, "sigma": 0.2}
+    pin = {"model": "pinhole", "fx": 20.0, "fy": 20.0, "cx": 8.0, "cy": 8.0, "width": N, "height": N,
+           "cam_to_world": C2W}
+    bases = {
+        "sphere": {"geometry": SPHERE, "views": [{"camera": ORTHO, "image": "img.exr"}], "lighting": env,
+                   "brdf": ts, "solve": {"lighting_lmax": 4}},
+        "mesh": {"geometry": {"mesh": "ball.ply"}, "views": [{"camera": pin}], "lighting": UP, "brdf": ts},
+        "views_nmap": {"views": [{"camera": ORTHO, "normal_map": "n.npy"}], "lighting": UP,
+                       "brdf": {"model": "rbf", "file": "r.npz"}},
+    }
+    optional = {  # (base, path to the block, key)
+        "sphere": [((), k) for k in ("lighting", "brdf", "solve", "encoding", "alpha")]
+        + [(("views", 0), k) for k in ("image", "mask", "encoding", "exposure", "saturation", "lighting",
+                                       "normal_map", "alpha")]
+        + [(("views", 0, "camera"), k) for k in ("width", "height")]
+        + [(("lighting",), k) for k in ("up", "layout", "encoding", "rotation", "directional")]
+        + [(("geometry",), k) for k in ("mesh", "normal_map")]
+        + [(("solve",), k) for k in ("lighting_lmax", "render_lmax", "fresnel", "saturation", "brdf_model",
+                                     "textured", "n_centers", "m_w", "m_xy", "tol", "min_cos", "max_samples")],
+        "mesh": [(("geometry",), k) for k in ("sphere", "normal_map", "normals")]
+        + [(("views", 0, "camera"), "pixel_centers")],
+        "views_nmap": [((), "geometry"), (("brdf",), "spatial"), (("brdf",), "n_centers")],
+    }
+    validator = _validator_or_none()
+    checked = 0
+    for name, base in bases.items():
+        for path, key in optional[name]:
+            absent = json.loads(json.dumps(base))
+            block = absent
+            for p in path:
+                block = block[p]
+            block.pop(key, None)
+            null = json.loads(json.dumps(absent))
+            block = null
+            for p in path:
+                block = block[p]
+            block[key] = None
+            where = ".".join(str(p) for p in path + (key,))
+            a = jio.read_manifest(_write(tmp_path, absent, "a.json"))
+            b = jio.read_manifest(_write(tmp_path, null, "a.json"))
+            assert _same(a, b), where
+            if validator is not None:
+                assert not list(validator.iter_errors(absent)), where
+                assert not list(validator.iter_errors(null)), where
+            checked += 1
+    assert checked == 41
+
+
+def _validator_or_none():
+    try:
+        from tests.test_manifest import _validator
+
+        return _validator()
+    except pytest.skip.Exception:
+        return None
