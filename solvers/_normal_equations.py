@@ -336,18 +336,30 @@ def pinv_psd(a, rcond, half: bool = False):
 def covariance_from_jacobian(J, rss, nobs, n_par):
     """$\\mathrm{cov} = s^2 (J^TJ)^{+}$, $s^2 = \\mathrm{RSS}/\\max(n - p, 1)$, and the standard errors.
 
-    Eigenvalues of $J^TJ$ below $\\epsilon\\,p\\,\\lambda_{max}$ are dropped; a
-    parameter with weight in those directions is undetermined and gets an
+    The columns of $J$ are scaled to unit norm first, $J = \\tilde J D$ with
+    $D = \\mathrm{diag}(\\lVert J_{:,j}\\rVert)$, and
+    $\\mathrm{cov} = s^2 D^{-1}(\\tilde J^T\\tilde J)^{+}D^{-1}$: the same matrix when
+    $J$ has full rank, but the rank decision no longer depends on the
+    parameters' units (images 1000× brighter scale the $K_d$, $K_s$ columns
+    and not the μ, σ ones: the unscaled $J^TJ$'s condition number grew like
+    the square of that factor, and in float32 every parameter came out
+    undetermined). Eigenvalues of $\\tilde J^T\\tilde J$ below
+    $\\epsilon\\,p\\,\\lambda_{max}$ are dropped; a parameter with weight in
+    those directions (or with a zero column) is undetermined and gets an
     infinite standard error. Returns `(cov, se)`.
     """
     dt = J.dtype
-    jtj = J.T @ J
+    norms = jnp.sqrt(jnp.sum(J * J, axis=0))
+    zero = norms <= jnp.finfo(dt).tiny
+    d = jnp.where(zero, 1.0, norms)
+    js = J / d[None, :]
+    jtj = js.T @ js
     s2 = rss / jnp.maximum(nobs - n_par, 1.0)
     evals, evecs = jnp.linalg.eigh(jtj)
     tiny = evals <= jnp.finfo(dt).eps * jnp.max(evals) * jtj.shape[0]
     inv = jnp.where(tiny, 0.0, 1.0 / jnp.where(tiny, 1.0, evals))
-    cov = (evecs * inv[None, :]) @ evecs.T * s2
-    undetermined = (jnp.abs(evecs) * tiny.astype(dt)[None, :]).max(axis=1) > 1e-6
+    cov = (evecs * inv[None, :]) @ evecs.T * s2 / (d[:, None] * d[None, :])
+    undetermined = zero | ((jnp.abs(evecs) * tiny.astype(dt)[None, :]).max(axis=1) > 1e-6)
     se = jnp.where(undetermined, jnp.inf, jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)))
     return cov, se
 

@@ -36,3 +36,26 @@ def test_explicit_jacobian_has_the_derivatives_of_the_function_and_a_small_linea
     size_plain = sum(x.size for x in jax.tree_util.tree_leaves(lin_plain))
     assert size <= 3 * m + 10 < size_plain
     np.testing.assert_allclose(np.asarray(lin(jnp.asarray([1.0, -2.0]))), fd @ np.asarray([1.0, -2.0]), rtol=1e-6, atol=1e-6)
+
+
+def test_covariance_does_not_depend_on_the_parameters_units(rng):
+    """`covariance_from_jacobian` against NumPy's float64 inverse of J^T J: with columns of very different scales
+    (images 1000x brighter scale the Kd, Ks columns, not the mu, sigma ones) float32 gives the same standard errors;
+    unscaled, float32 declared every parameter undetermined (inf). Rank-deficient and zero columns stay inf."""
+    from solvers._normal_equations import covariance_from_jacobian
+
+    base = rng.normal(size=(400, 4))
+    rss, nobs = 3.7, 400.0
+    for scale in ([1.0, 1.0, 1.0, 1.0], [1e3, 1e3, 1.0, 1.0], [1e-3, 1e4, 1.0, 1e2]):
+        J = base * np.asarray(scale)
+        want = np.sqrt(np.diag(np.linalg.inv(J.T @ J)) * rss / (nobs - 4))
+        for dt, rtol in ((np.float64, 1e-10), (np.float32, 1e-4)):
+            _, se = covariance_from_jacobian(jnp.asarray(J, dt), jnp.asarray(rss, dt), nobs, 4)
+            np.testing.assert_allclose(np.asarray(se), want, rtol=rtol)
+    rank3 = base.copy()
+    rank3[:, 3] = rank3[:, 0] - 2 * rank3[:, 1]  # parameters 0, 1, 3 trade off exactly; 2 is determined
+    zero = base.copy()
+    zero[:, 1] = 0.0
+    for J, inf in ((rank3, [True, True, False, True]), (zero, [False, True, False, False])):
+        _, se = covariance_from_jacobian(jnp.asarray(J * [1e3, 1, 1, 1]), jnp.asarray(rss), nobs, 4)
+        np.testing.assert_array_equal(np.isinf(np.asarray(se)), inf)
