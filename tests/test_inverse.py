@@ -953,3 +953,18 @@ def test_golden_ks_unit_converges_within_its_steps():
         assert int(steps) < 70 and abs(float(ks) - k0) < 1e-6 and float(f) == pytest.approx(2.0, abs=1e-12)
     ks, f, _ = golden_ks_unit(lambda k, _: -k, jnp.float64, 1e-11, 1e-11, 100)  # decreasing: the end point 1
     assert float(ks) == 1.0
+
+
+def test_inverse_lighting_dual_nonneg_does_not_depend_on_the_image_units(capture, obs_noisy):
+    """R&H sec. 6.2's dual method with L >= 0: images x s give the lighting image x s at s = 1e-3 and 1e3. L-BFGS-B
+    stops on a projected-gradient norm; the loss was in the images' units squared, so at s = 1e-3 it stopped early
+    (0.05 % away from the s = 1 image here, 18 % on a finer grid) and at 1e3 late. Now in units of the data."""
+    base = solvers.inverse_lighting_dual(obs_noisy, TRUTH, 8)
+    assert solvers.status_name(base.status) == "converged"
+    for s in (1e-3, 1e3):
+        obs = eqx.tree_at(lambda o: o.values, obs_noisy, obs_noisy.values * s)
+        r = solvers.inverse_lighting_dual(obs, TRUTH, 8)
+        assert solvers.status_name(r.status) == "converged"
+        img, ref = np.asarray(r.image) / s, np.asarray(base.image)
+        assert np.linalg.norm(img - ref) / np.linalg.norm(ref) < 1e-6, s
+        np.testing.assert_allclose(np.asarray(r.coeffs9) / s, np.asarray(base.coeffs9), rtol=1e-6, atol=1e-9)
