@@ -330,7 +330,9 @@ def inverse_lighting_dual(
     condition $L^1 = L^2$ is 9 linear equations per channel, solved
     directly (`lineax.LU`). With `nonneg=True` the image is then refined by
     jaxopt's L-BFGS-B under $L \\ge 0$ (at most `maxiter` iterations, to a
-    projected-gradient norm `tol`), minimizing the image residual of the
+    projected-gradient norm `tol` in units of the data — the loss over the
+    data's mean square, the lighting over the phase-1 field's RMS — so the
+    same at any radiometric scale), minimizing the image residual of the
     same model with the diffuse term driven by the image's own $l \\le 2$
     projection (consistency by construction). `throw`: raise
     `solvers.SolveError` unless the status is `converged`.
