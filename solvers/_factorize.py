@@ -72,17 +72,20 @@ the pixels per grid (`_refine_search`). The final solve uses all pixels; the sta
 of $(K_s, \\sigma)$ come from the Hessian of the profiled RSS there (by central
 differences, `_profiled_hessian`), that of $\\mu$ from the stage-1 parabola.
 
-**Limit: the source direction is found on a grid and then held fixed.** It is
-the weighted centroid of the peak's texels on the recovered lighting's
-lat-long map (`_source_on_map`), so it is accurate to a fraction of a texel
-and moves with the grid, not with the scene: on noise-free data made by the
-refinement's own model (slow SH to $l = 8$ plus one delta, a 32 × 32 sphere,
-three views) it was 0.28° from the true source, and 0.29-0.51° in four
-rotated copies of the scene. The refinement does not move it, so that error
-stays in the fit: $K_s$ and $\\sigma$ varied by up to 1 % between the
-rotated copies, and the relative RMS was 0.4-1.1 % instead of 0. A
-refinement of the direction along with $(K_s, \\sigma)$ would remove it; it
-would add two unknowns to every search of the refinement (not done).
+**The source direction** is the weighted centroid of the peak's texels on
+the recovered lighting's lat-long map, refined by three mean-shift steps on
+the band-limited SH lighting itself (`_mean_shift`: the centroid over a cap of
+three texels, by quadrature in polar coordinates around the current centre),
+so that it follows the scene and not the grid. It is then held fixed by the
+refinement. On noise-free data made by the refinement's own model (slow SH to
+$l = 8$ plus one delta, a 32 × 32 sphere, three views) the texel centroid
+alone was 0.28° from the true source and 0.29-0.51° in four rotated copies of
+the scene, which moved $K_s$ and $\\sigma$ by up to 1 % between the copies
+and left a relative RMS of 0.4-1.1 %; with the mean shift it is 0.05° in all
+five, the estimates agree to 3e-5 and the relative RMS is 0.15 %. What
+remains is the background's slope under the peak, which shifts the peak
+itself; a refinement of the direction along with $(K_s, \\sigma)$ would
+remove it (not done: two more unknowns in every search of the refinement).
 """
 
 from __future__ import annotations
@@ -382,14 +385,20 @@ def find_source(
     return _find_source(coeffs, check_region(region, h, dt), h, lmax)
 
 
+_SHIFT_STEPS = 3  # mean-shift steps of the source direction (`_mean_shift`)
+
+
 @jaxsh.jit
 def _find_source(coeffs, region, h: int, lmax: int) -> SourceEstimate:
     """`find_source` after its checks: one compiled program (`h`, `lmax` static)."""
     dt = coeffs.dtype
     w = 2 * h
     img = jaxsh.synthesize_latlong(coeffs, h, w)  # (H, W, C)
-    return _source_on_map(img, jnp.ones((h, w), bool), region, lambda d, k: jaxsh.real_sh(d, lmax) @ coeffs,
-                          _delta_moments(lmax))
+    def value_at(q):  # the band-limited map at any directions `(..., 3)`: `(..., C)`
+        return jaxsh.real_sh(q, lmax) @ coeffs
+
+    return _source_on_map(img, jnp.ones((h, w), bool), region, lambda d, k: value_at(d), _delta_moments(lmax),
+                          value_at=value_at)
 
 
 def _lobe(sigma, theta):
@@ -408,14 +417,43 @@ def _source_in_image(img, covered, region) -> SourceEstimate:
     return _source_on_map(img, covered, region, lambda d, k: img.reshape(-1, img.shape[-1])[k], _lobe_moments)
 
 
-def _source_on_map(img, covered, region, peak_at, moments) -> SourceEstimate:
+def _mean_shift(d, value_at, rho, steps: int = _SHIFT_STEPS, n_r: int = 12, n_phi: int = 24):
+    """The centre of a peak of a map known at any direction: `steps` mean-shift steps from `d`, each to the
+    centroid of $(f - \\min f)$ over the cap of radius `rho` around the current centre ($f$ the channel mean of
+    `value_at`), by a midpoint rule in polar coordinates on the cap (`n_r` × `n_phi` nodes, weight
+    $\\sin r$). For a radially symmetric peak the centroid is its centre, whatever the grid: this is what
+    makes the source direction follow the scene, not the lat-long grid (`_source_on_map`)."""
+    dt = d.dtype
+    r = (jnp.arange(n_r, dtype=dt) + 0.5) * (rho / n_r)
+    phi = (jnp.arange(n_phi, dtype=dt) + 0.5) * (2 * jnp.pi / n_phi)
+    cr, sr = jnp.cos(r)[:, None, None], jnp.sin(r)[:, None, None]
+    ring = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)[None]  # (1, n_phi, 2)
+
+    def step(_, d):
+        a = jnp.where(jnp.abs(d[2]) < 0.9, jnp.asarray([0.0, 0.0, 1.0], dt), jnp.asarray([1.0, 0.0, 0.0], dt))
+        e1 = jnp.cross(d, a)
+        e1 = e1 / jnp.linalg.norm(e1)
+        e2 = jnp.cross(d, e1)
+        q = cr * d[None, None] + sr * (ring[..., :1] * e1[None, None] + ring[..., 1:] * e2[None, None])  # (n_r, n_phi, 3)
+        f = jnp.mean(value_at(q.reshape(-1, 3)), -1).reshape(n_r, n_phi)
+        wq = sr[..., 0] * (f - jnp.min(f))
+        c = jnp.sum(wq[..., None] * q, (0, 1))
+        n = jnp.linalg.norm(c)
+        return jnp.where(n > 0, c / jnp.where(n > 0, n, 1.0), d)
+
+    return jax.lax.fori_loop(0, steps, step, d)
+
+
+def _source_on_map(img, covered, region, peak_at, moments, value_at=None) -> SourceEstimate:
     """eq. 26 on a lat-long lighting map `img` `(H, W, C)` (module docstring), inside the caller's jit.
 
     `covered` `(H, W)`: the texels that carry the lighting (all, for an SH map; the mirror-covered ones for
     the dual image); `peak_at(d, k)`: the map's value `(C,)` at the centre `d` (flat texel `k` is the
     brightest); `moments(m, theta)`: a function of sigma giving `m @ f_sigma(theta)` `(K,)` for the model
     `f_sigma` of a filtered unit source at the angles `theta` `(T,)` and fixed weights `m` `(K, T)`
-    (`_delta_moments`, `_lobe_moments`)."""
+    (`_delta_moments`, `_lobe_moments`). `value_at(q)`: the map at any directions `(..., 3)` (an SH map), or
+    None (a texel image): with it, the texel centroid is refined by `_mean_shift` over a cap of three texels,
+    so that the direction does not depend on where the grid's texels fall."""
     dt = img.dtype
     h, w = img.shape[:2]
     dirs = jaxsh.latlong_directions(h, w, dtype=dt)
@@ -443,6 +481,8 @@ def _source_on_map(img, covered, region, peak_at, moments) -> SourceEstimate:
     cen = jnp.sum(jnp.where(top[..., None], (wts * (lum - half))[..., None] * dirs, 0.0), axis=(0, 1))
     cen = jnp.where(jnp.linalg.norm(cen) > 0, cen, d0)
     d = cen / jnp.linalg.norm(cen)
+    if value_at is not None:
+        d = _mean_shift(d, value_at, jnp.asarray(3.0 * jnp.pi / h, dt))
     radius = region[1] if region is not None else jnp.clip(2.5 * r_half, 0.05, 1.0)
     ang = jnp.arccos(jnp.clip(dirs @ d, -1.0, 1.0))
     wc = jnp.where(ang <= radius, wts, 0.0)
