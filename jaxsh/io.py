@@ -150,24 +150,27 @@ def read_image_info(path) -> dict:
     """
     path = os.fspath(path)
     _check_readable(path)
-    oiio = _oiio()
     inp = _open(path)
     try:
-        spec = inp.spec()
-        base = spec.format.basetype
-        lay = _layout(path, spec)
-        alpha = int(spec.alpha_channel) >= 0
+        return _header(path, inp.spec())[0]
     finally:
         inp.close()
-    info = {"width": lay["width"], "height": lay["height"], "channels": int(spec.nchannels), "alpha": alpha,
-            "orientation": lay["orientation"]}
+
+
+def _header(path: str, spec) -> tuple[dict, dict]:
+    """(`read_image_info`'s dict, `_layout`) of an open file's spec."""
+    oiio = _oiio()
+    base = spec.format.basetype
+    lay = _layout(path, spec)
+    info = {"width": lay["width"], "height": lay["height"], "channels": int(spec.nchannels),
+            "alpha": int(spec.alpha_channel) >= 0, "orientation": lay["orientation"]}
     if base in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
         bits = {oiio.HALF: 16, oiio.FLOAT: 32, oiio.DOUBLE: 64}[base]
-        return {**info, "float": True, "max_code": None, "bits": bits}
+        return {**info, "float": True, "max_code": None, "bits": bits}, lay
     if base == oiio.UINT8:
-        return {**info, "float": False, "max_code": 255, "bits": 8}
+        return {**info, "float": False, "max_code": 255, "bits": 8}, lay
     if base == oiio.UINT16:
-        return {**info, "float": False, "max_code": 65535, "bits": 16}
+        return {**info, "float": False, "max_code": 65535, "bits": 16}, lay
     raise ValueError(f"image {path!r}: unsupported pixel type {spec.format} (supported: 8/16-bit unsigned, half, float)")
 
 
@@ -176,12 +179,12 @@ def _read_pixels(path: str):
 
     The values are as stored (never multiplied by alpha), the rows and columns those of the image as displayed:
     the display window cut from the data window, then the orientation tag applied (`_layout`). Alpha, if any, is
-    the channel `alpha_channel` of the file's spec, returned in its place."""
-    info = read_image_info(path)
+    the channel `alpha_channel` of the file's spec, returned in its place. The file is opened once."""
+    _check_readable(path)
     inp = _open(path)
     try:
         spec = inp.spec()
-        lay = _layout(path, spec)
+        info, lay = _header(path, spec)
         alpha_channel = int(spec.alpha_channel)
         data = inp.read_image("float")
         if data is None:
@@ -273,6 +276,15 @@ def _split_alpha(path: str, arr, info: dict, alpha, what: str = "image"):
     return np.ascontiguousarray(arr[..., keep]), arr[..., k]
 
 
+def _drop_opaque_alpha(arr, info: dict, refusal: str):
+    """The colour channels of `_read_pixels`' output whose alpha channel, if any, is opaque everywhere (a partial
+    alpha is a `ValueError` with the message `refusal`: for masks and environment maps it has no declared use)."""
+    colour, cover = _split_alpha("", arr, info, "ignore")
+    if cover is not None and not np.all(cover >= 1.0):
+        raise ValueError(refusal)
+    return colour
+
+
 def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, saturation: float | None = None,
                   alpha: str | None = None):
     """Read a captured image as linear radiance and the mask of its unclipped pixels.
@@ -339,14 +351,9 @@ def read_mask(path) -> np.ndarray:
     """
     path = os.fspath(path)
     arr, info = _read_pixels(path)
-    k = info["alpha_channel"]
-    if k >= 0:
-        if not np.all(arr[..., k] >= 1.0):
-            raise ValueError(
-                f"mask {path!r} has an alpha channel that is not opaque everywhere: which channel holds the mask "
-                "would be a guess; save the mask as one channel (a pixel is used where it is above half of full "
-                "scale)")
-        arr = arr[..., [c for c in range(arr.shape[-1]) if c != k]]
+    arr = _drop_opaque_alpha(
+        arr, info, f"mask {path!r} has an alpha channel that is not opaque everywhere: which channel holds the mask "
+        "would be a guess; save the mask as one channel (a pixel is used where it is above half of full scale)")
     return arr[..., 0] > 0.5
 
 
@@ -724,12 +731,8 @@ def read_envmap(
     path = os.fspath(path)
     img, info = _read_pixels(path)
     img = _decode(img, _check_encoding(path, encoding, info), info["alpha_channel"])
-    if info["alpha_channel"] >= 0:
-        k = info["alpha_channel"]
-        if not np.all(img[..., k] >= 1.0):
-            raise ValueError(f"environment map {path!r} has an alpha channel that is not opaque everywhere: an "
-                             "environment map is radiance from every direction; remove the alpha channel")
-        img = np.ascontiguousarray(img[..., [c for c in range(img.shape[-1]) if c != k]])
+    img = _drop_opaque_alpha(img, info, f"environment map {path!r} has an alpha channel that is not opaque "
+                             "everywhere: an environment map is radiance from every direction; remove the alpha channel")
     fh, fw = img.shape[:2]
     if layout == "latlong":
         if fw != 2 * fh:
