@@ -151,25 +151,42 @@ def view_geometry(m: dict, k: int, mesh, fd, cache: dict):
     positions and so no shadows (`jaxsh.normal_map_gbuffer`); each file is
     read once (`cache`).
     """
+    g = view_gbuffer(m, k, mesh, cache)
+    return g, (_mesh_visibility(mesh, g, fd) if mesh is not None else {})
+
+
+def view_gbuffer(m: dict, k: int, mesh, cache: dict):
+    """The `GBuffer` of view `k` (sphere, mesh or normal map), its normals checked to face the camera
+    (`_check_facing`). The last one made is kept in `cache` under its camera and normal map: consecutive views
+    with one camera (a light stage, photometric stereo) raycast the mesh once."""
     view = m["views"][k]
-    cam = camera_from_manifest(view["camera"])
     geo = m["geometry"]
+    key = (tuple((name, np.asarray(value).tobytes()) for name, value in sorted(view["camera"].items())),
+           view["normal_map"])
+    last = cache.get(_LAST_GBUFFER)
+    if last is not None and last[0] == key:
+        return last[1]
+    cam = camera_from_manifest(view["camera"])
     if mesh is not None:
         # `geometry.normals`: interpolated vertex normals of the merged mesh, or the flat normal of each face
         g = jaxsh.mesh_gbuffer(cam, mesh, smooth=geo.get("normals", "smooth") == "smooth")
         _check_facing(m, k, g, "geometry.mesh", geo["mesh"],
                       "its triangles are wound inside out (normals pointing into the object); reverse the winding "
                       "(trimesh: `mesh.invert()`)")
-        return g, _mesh_visibility(mesh, g, fd)
-    if "sphere" in geo:
-        return jaxsh.sphere_gbuffer(cam, geo["sphere"]["center"], geo["sphere"]["radius"]), {}
-    field = f"views[{k}].normal_map" if view["normal_map"] else "geometry.normal_map"
-    g = jaxsh.normal_map_gbuffer(cam, view_normal_map(m, k, cache))
-    _check_facing(m, k, g, field, view["normal_map"] or geo["normal_map"],
-                  "normals must be in the world frame and point out of the object; a camera-frame map must be turned "
-                  "into the world frame by the camera's `cam_to_world` rotation (OpenCV camera axes: +y down, +z away "
-                  "from the viewer; many photometric-stereo maps use +y up, +z towards the viewer)")
-    return g, {}
+    elif "sphere" in geo:
+        g = jaxsh.sphere_gbuffer(cam, geo["sphere"]["center"], geo["sphere"]["radius"])
+    else:
+        field = f"views[{k}].normal_map" if view["normal_map"] else "geometry.normal_map"
+        g = jaxsh.normal_map_gbuffer(cam, view_normal_map(m, k, cache))
+        _check_facing(m, k, g, field, view["normal_map"] or geo["normal_map"],
+                      "normals must be in the world frame and point out of the object; a camera-frame map must be "
+                      "turned into the world frame by the camera's `cam_to_world` rotation (OpenCV camera axes: +y "
+                      "down, +z away from the viewer; many photometric-stereo maps use +y up, +z towards the viewer)")
+    cache[_LAST_GBUFFER] = key, g
+    return g
+
+
+_LAST_GBUFFER = ("the last GBuffer",)  # `view_gbuffer`'s entry in the cache of normal maps, which are keyed by path
 
 
 def _check_facing(m: dict, k: int, g, field: str, path: str, hint: str) -> None:
@@ -279,9 +296,8 @@ def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:
     # every input read (and refused) before the first output is written
     lights = [lit_of(k) for k in range(n)]
     maps = {}
-    if not ({"mesh", "sphere"} & m["geometry"].keys()):
-        for k in range(n):
-            view_normal_map(m, k, maps)
+    for k in range(n):  # and every view's geometry (normal maps, the facing checks): one camera, one raycast
+        view_gbuffer(m, k, mesh, maps)
     os.makedirs(out_dir, exist_ok=True)
     written = []
     for k, view in enumerate(m["views"]):

@@ -516,6 +516,20 @@ def test_normal_map_facing_away_is_an_error(tmp_path, command):
             run()
 
 
+def test_render_refuses_a_later_view_before_writing_any(tmp_path):
+    """`jaxsh render` checks every view's normals before it writes: a second view whose map faces away leaves no
+    output at all (before, `view_000` was written and then the command failed)."""
+    good = _sphere_normals()
+    np.save(tmp_path / "n.npy", good)
+    np.save(tmp_path / "n_bad.npy", good * np.array([1.0, -1.0, -1.0]))
+    brdf = {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.0, "mu": None, "sigma": 0.2}
+    m = {"geometry": {"normal_map": "n.npy"}, "views": [{"camera": ORTHO}, {"camera": ORTHO, "normal_map": "n_bad.npy"}],
+         "lighting": UP, "brdf": brdf}
+    with pytest.raises(jio.ManifestError, match=r"`views\[1\]\.normal_map`: .* of `views\[1\]` have normals facing away"):
+        render_manifest(_write(tmp_path, m), tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 def test_mesh_wound_inside_out_is_an_error(tmp_path):
     import trimesh
 
