@@ -128,3 +128,26 @@ class Compiles:
     def __exit__(self, *exc):
         self._logger.removeHandler(self._handler)
         self._ctx.__exit__(*exc)
+
+
+def quadrature_images(gbs, brdf, lightings, lmax, n_theta=16, n_phi=32):
+    """Images of the views `gbs` by brute-force quadrature of the reflection equation (`jaxsh.reflect_quadrature`,
+    R&H eq. 2) of a world-frame `brdf(wi, wo, n) -> (..., C)` under band-limited lighting: `lightings[k]` real SH
+    `(num_coeffs(lmax), C)` for view k. Exact to rounding when the integrand is a polynomial of low degree in the
+    incident direction (Gauss-Legendre in cos(theta_i), uniform azimuths). No SH BRDF coefficients are involved, so
+    fits of `fit_brdf_sh` / `predict_brdf_sh` (eqs. 9, 10) are checked against something they do not share."""
+    import jaxsh
+
+    imgs = []
+    for g, sh in zip(gbs, lightings):
+        m = np.asarray(g.mask)
+        sh = np.asarray(sh)
+        img = np.zeros(m.shape + (sh.shape[1],))
+
+        def light(d, sh=sh):
+            return jaxsh.real_sh(d, lmax) @ sh
+
+        img[m] = np.asarray(jaxsh.reflect_quadrature(light, brdf, np.asarray(g.normal)[m], np.asarray(g.view)[m],
+                                                     n_theta=n_theta, n_phi=n_phi))
+        imgs.append(img)
+    return imgs

@@ -7,7 +7,7 @@ import pytest
 import jaxsh
 import solvers
 
-from .helpers import write_png16
+from .helpers import quadrature_images, write_png16
 
 C2W = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]], float)  # looks down -z
 TRUE = jaxsh.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.35, 0.4]), 1.5, 0.2)
@@ -229,18 +229,19 @@ def test_fit_brdf_sh_per_view_lighting(rng):
     one = solvers.fit_brdf_sh(obs, sh, 2)
     per = solvers.fit_brdf_sh(obs, [solvers.Lighting(jnp.asarray(sh))] * 2, 2)
     np.testing.assert_allclose(np.asarray(per.rho), np.asarray(one.rho), rtol=0, atol=1e-10)
-    # different lighting per view: images predicted from one rho under each view's own SH are fitted exactly
+    # different lighting per view: images of one BRDF rendered by quadrature under each view's own SH lighting
+    # (`helpers.quadrature_images`, independent of eqs. 9, 10) are fitted exactly, and only with each view's lighting
     sh2 = sh.copy()
     sh2[1:4] *= -1.5
     lights = [solvers.Lighting(jnp.asarray(sh)), solvers.Lighting(jnp.asarray(sh2))]
-    vi = np.asarray(obs.view_index)
-    pred = np.zeros(np.asarray(obs.values).shape)
-    for k, s_k in enumerate((sh, sh2)):
-        sel = vi == k
-        pred[sel] = np.asarray(solvers.predict_brdf_sh(one.rho, s_k, obs.normals[sel], obs.views[sel]))
-    obs2 = solvers.observations(gbs, obs.to_images(pred))
+
+    def brdf(wi, wo, n):  # degree 2 in each direction: exact at lmax 2 under lmax-2 lighting
+        return 0.3 / np.pi + 0.2 * jnp.sum(wi * wo, -1) ** 2
+
+    obs2 = solvers.observations(gbs, quadrature_images(gbs, brdf, [sh, sh2], 2))
     fit = solvers.fit_brdf_sh(obs2, lights, 2)
-    assert float(fit.rel_rms) < 1e-8
+    assert float(fit.rel_rms) < 1e-10
+    assert float(solvers.fit_brdf_sh(obs2, sh, 2).rel_rms) > 1e-2  # one lighting for both views cannot explain them
     with pytest.raises(ValueError, match="lighting_sh"):
         solvers.fit_brdf_sh(obs2, lights[:1], 2)
 

@@ -16,6 +16,7 @@ import pytest
 import jaxsh
 import solvers
 from solvers._factorize_dual import _dual_moments, _dual_rss_one
+from tests.helpers import quadrature_images
 
 TRUTH = solvers.TorranceSparrow(jnp.array([0.6, 0.45, 0.3]), jnp.array([0.3, 0.3, 0.3]), jnp.asarray(1.6), jnp.asarray(0.1))
 SIZE = 64
@@ -771,35 +772,28 @@ def test_inverse_lighting_dual_recovers_the_filtered_lighting():
 # --------------------------------------------------------------------------- SH BRDF coefficients (sec. 6.1)
 
 
-def _sh_brdf_data(gbs, rho3, L):
-    imgs = []
-    for g in gbs:
-        m = np.asarray(g.mask)
-        img = np.zeros(m.shape + (3,))
-        img[m] = np.asarray(solvers.predict_brdf_sh(rho3, L, np.asarray(g.normal)[m], np.asarray(g.view)[m]))
-        imgs.append(img)
-    return imgs
-
-
 def test_fit_brdf_sh_solves_the_linear_system_of_eqs_9_10(rng):
-    """Images of a known SH BRDF under random band-limited lighting (eqs. 9, 10): the solve reproduces
-    held-out pixels of the same views exactly and reports the rank it found.
+    """Images of a known BRDF under random band-limited lighting, rendered by brute-force quadrature of the
+    reflection equation (`helpers.quadrature_images`: no SH BRDF coefficients, no local frames of eqs. 9, 10): the
+    solve reproduces them and held-out pixels of the same views to rounding.
 
-    With three views at one elevation the system has rank 52 of 55 (measured): three combinations
-    of coefficients are not excited by these views, so a view from elsewhere is not determined --
-    the solver says so through `rank` instead of inventing values (minimum-norm solution)."""
+    The BRDF rho = 0.3/pi + 0.2 (w_i . w_o)^2 is a polynomial of degree 2 in each direction, and the lighting is
+    band-limited to lmax 4, so the images are exactly representable by eqs. 9, 10 at lmax 4 (the hemispherical
+    projections of `jaxsh.brdf_sh_coefficients` are not that representation: they converge as O(1/P^2), see
+    `test_convolution.py`). With three views at one elevation the system has
+    rank 52 of 55 (measured): three combinations of coefficients are not excited by these views, so a view from
+    elsewhere is not determined -- the solver says so through `rank` instead of inventing values (minimum-norm)."""
     lmax = 4
 
-    def tf(ti, to, dphi):  # a smooth isotropic transfer function (cos(theta_i) included)
-        c = jnp.cos(ti) * jnp.cos(to) + jnp.sin(ti) * jnp.sin(to) * jnp.cos(dphi)
-        return (0.3 / np.pi + 0.2 * c**2) * jnp.cos(ti)
+    scale = np.array([1.0, 0.5, 2.0])  # the BRDF of channel c is scale[c] rho
 
-    rho = jaxsh.brdf_sh_coefficients(tf, lmax)
-    rho3 = jnp.stack([rho, 0.5 * rho, 2 * rho], -1)
+    def brdf(wi, wo, n):  # the same BRDF in world directions
+        return 0.3 / np.pi + 0.2 * jnp.sum(wi * wo, -1) ** 2
+
     L = rng.normal(size=(jaxsh.num_coeffs(lmax), 3))
     L[0] += 3.0
     gbs = [jaxsh.sphere_gbuffer(c, np.zeros(3), 1.0) for c in solvers.view_cameras(3, 24)]
-    imgs = _sh_brdf_data(gbs, rho3, L)
+    imgs = quadrature_images(gbs, brdf, [L * scale] * 3, lmax)  # B is linear in (BRDF scale) x (lighting)
     masks = [rng.uniform(size=np.asarray(g.mask).shape) < 0.8 for g in gbs]
     res = solvers.fit_brdf_sh(solvers.observations(gbs, imgs, masks=masks), L, lmax)
     assert float(res.rel_rms) < 1e-10 and solvers.status_name(res.status) == "converged"
