@@ -56,6 +56,11 @@ from ._render_manifest import (
 from ._sharing import Samples, fit_homogeneous, fit_sbrdf, reflectance_samples
 
 
+# The roughness whose cut-off (`min(ceil(4 / sigma), H/2 - 1)`, `lighting_from_block`) a given environment map is
+# projected to for the first fit of a known-lighting capture; a smoother fit projects it again (`fit_manifest`).
+_FIRST_SIGMA = 0.1
+
+
 def _json(x):
     """Arrays to lists; non-finite numbers (undetermined std errors) to None."""
     if x is None:
@@ -160,17 +165,25 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         # `device_put`, no XLA program per shape)
         return Lighting(*parts)
 
-    known = None
-    per_view = None  # one Lighting per view (`views[k].lighting`), else None
-    if m["lighting"] is not None:
-        known = to_lighting(lighting_from_manifest(m, 0.1, solve.get("render_lmax")))
-    if blocks is not None:
-        per_view = [known if (blk is m["lighting"] and known is not None)
-                    else to_lighting(lighting_from_block(blk, 0.1, solve.get("render_lmax"), manifest=m["path"],
-                                                         where=lighting_where(m, blocks, k)))
-                    for k, blk in enumerate(blocks)]
-        if known is None:
-            known = per_view[0]  # for lighting.exr / result.json
+    def given_lighting(sigma):
+        """(the top-level `Lighting` or view 0's, one `Lighting` per view or None, the envmaps' SH cut-off or None):
+        the maps projected to `solve.render_lmax`, else to the cut-off of roughness `sigma` (`envmap_lmax`)."""
+        known = None
+        per_view = None  # one Lighting per view (`views[k].lighting`), else None
+        if m["lighting"] is not None:
+            known = to_lighting(lighting_from_manifest(m, sigma, solve.get("render_lmax")))
+        if blocks is not None:
+            per_view = [known if (blk is m["lighting"] and known is not None)
+                        else to_lighting(lighting_from_block(blk, sigma, solve.get("render_lmax"), manifest=m["path"],
+                                                             where=lighting_where(m, blocks, k)))
+                        for k, blk in enumerate(blocks)]
+            if known is None:
+                known = per_view[0]  # for lighting.exr / result.json
+        cuts = [math.isqrt(lit.slow_sh.shape[0]) - 1 for lit in (per_view or [known])
+                if lit is not None and lit.slow_sh is not None]
+        return known, per_view, (max(cuts) if cuts else None)
+
+    known, per_view, used_lmax = given_lighting(_FIRST_SIGMA)
     view_light = (lambda k: known) if per_view is None else (lambda k: per_view[k])
     t = time.perf_counter()
     gbs, imgs, masks, extras = [], [], [], []
@@ -231,6 +244,20 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
             ", mu, sigma (grid + simplex, R&H sec. 6.1; Levenberg-Marquardt on all samples after a search on a subset)")
         res = fit_brdf(sobs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
                        textured=textured)
+        # The maps were cut off for the roughness `_FIRST_SIGMA`; a surface fitted as smoother reflects finer
+        # detail of them (the filter exp(-(sigma l)^2) of eq. 24 is still 1e-7 at l = 4 / sigma): project them
+        # again at the fitted sigma's cut-off and fit again, until the cut-off covers the fit (at most twice).
+        for _ in range(2):
+            if used_lmax is None or solve.get("render_lmax") is not None:
+                break
+            known2, per_view2, lmax2 = given_lighting(float(np.min(np.asarray(res.brdf.sigma))))
+            if lmax2 <= used_lmax:
+                break
+            say(f"fitted sigma {float(np.min(np.asarray(res.brdf.sigma))):.4f} reflects the environment map beyond "
+                f"its cut-off l = {used_lmax}: fitting again with the map to l = {lmax2}")
+            known, per_view, used_lmax = known2, per_view2, lmax2
+            res = fit_brdf(sobs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
+                           textured=textured)
         brdf, lighting, std = res.brdf, known, res.std_errors
         light_sh = known.total_sh(lmax)
         display_sh = light_sh
@@ -280,6 +307,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
             brdf_json["ks"] = _json(np.asarray(brdf.ks).reshape(-1, np.shape(brdf.ks)[-1])[0])
     timings["write"] = time.perf_counter() - t
     lighting_json = _lighting_json(light_sh, lmax)
+    if known is not None and used_lmax is not None:
+        lighting_json["envmap_lmax"] = used_lmax
     if m["lighting"] is None and lighting.fast_directions is not None:
         lighting_json["directional"] = [
             {"direction": _json(d), "radiance": _json(e)} for d, e in zip(lighting.fast_directions, lighting.fast_energy)
