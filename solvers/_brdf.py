@@ -44,7 +44,8 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._jacobian import explicit_jacobian
-from ._normal_equations import covariance_from_jacobian, inverse_sym2_diag, solve_grouped_shared, solve_sym2, solve_sym2_min_norm
+from ._normal_equations import (covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared,
+                                solve_sym2, solve_sym2_min_norm)
 from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
@@ -103,15 +104,18 @@ class BRDFResult(Solution):
 
 
 def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
-    """Weighted LSQ for kd, ks given the unit diffuse D and specular S images (N, C).
+    """Weighted LSQ for kd, ks >= 0 given the unit diffuse D and specular S images (N, C).
 
-    Returns kd, ks ((C,) or (T, C)) and a flag for a singular system.
+    Returns kd, ks ((C,) or (T, C)) and a flag for a singular system. Homogeneous and per-texel (kd, ks) are the
+    nonnegative least-squares solutions (`nonneg_sym2`): a `TorranceSparrow` has kd, ks >= 0, and data that an
+    unconstrained solve fits with a negative albedo (negative or offset radiance) get the best physical fit and
+    its residual instead. The shared-ks form (`textured="kd"`) is unconstrained.
     """
     wd, ws = w[:, None] * D, w[:, None] * S
     if textured is None:
-        kd, ks, bad = solve_sym2_min_norm(
-            jnp.sum(wd * D, 0), jnp.sum(wd * S, 0), jnp.sum(ws * S, 0), jnp.sum(wd * b, 0), jnp.sum(ws * b, 0)
-        )
+        a = jnp.sum(wd * D, 0), jnp.sum(wd * S, 0), jnp.sum(ws * S, 0), jnp.sum(wd * b, 0), jnp.sum(ws * b, 0)
+        kd, ks, bad = solve_sym2_min_norm(*a)
+        kd, ks = nonneg_sym2(kd, ks, a[0], a[2], a[3], a[4])
         return kd, ks, jnp.any(bad)
 
     def seg(x):
@@ -121,6 +125,7 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     observed = seg(w) > 0
     if textured == "kd_ks":
         kd, ks, bad = solve_sym2(dd, ds, ss, db, sb)
+        kd, ks = nonneg_sym2(kd, ks, dd, ss, db, sb)
         return kd, ks, jnp.any(bad & observed[:, None])
     # textured == "kd": one ks per channel, kd per texel. Eliminate kd_t (Schur complement).
     kd, ks, bad = solve_grouped_shared(dd, ds, ss, db, sb)
@@ -204,7 +209,8 @@ def fit_brdf(
     - `fresnel`: fit $\\mu$ (True) or use $F = 1$ (False; `brdf.mu` is None).
     - `textured`: `None` (homogeneous), `"kd"` ($K_d$ per texel, one $K_s$)
       or `"kd_ks"` (both per texel); needs `obs.texel`.
-    - `init`: starting `(mu, sigma)`; default: the best of a small grid.
+    - `init`: starting `(mu, sigma)` inside `MU_BOUNDS` x `SIGMA_BOUNDS` (`mu` unused, may be None, with
+      `fresnel=False`); default: the best of a small grid.
     - `refine`: Levenberg–Marquardt refinement on all samples (homogeneous;
       on the profiled residual, whose minimizer is the joint one). `None`
       (default): only when the grid and the simplex ran on a subset
@@ -263,7 +269,8 @@ def fit_brdf(
             np.stack([np.log(mg.ravel() - 1), np.log(sg.ravel())], 1) if fresnel else np.log(sg.ravel())[:, None], dt
         )
     else:
-        u_grid = _to_u(init[0], init[1], fresnel, dt)[None, :]
+        mu0, sigma0 = check_init(init, fresnel)
+        u_grid = _to_u(mu0, sigma0, fresnel, dt)[None, :]
     search = None
     if search_pixels is not None and refine is not False and textured is None:
         search = _search_samples(obs.weights, search_pixels)
@@ -273,6 +280,26 @@ def fit_brdf(
     res = _fit_brdf(terms, obs.values, obs.weights, obs.texel, u_grid, obs.n_texels, fresnel, textured, refine,
                     int(max_steps), rtol, atol, search)
     return finish(res, throw)
+
+
+def check_init(init, fresnel: bool) -> tuple[float, float]:
+    """`fit_brdf`'s `init`: a pair `(mu, sigma)` of numbers inside the search box (`MU_BOUNDS`, `SIGMA_BOUNDS`;
+    `mu` is not read without Fresnel and may be None); a `ValueError` naming `init` otherwise (before, a value
+    outside the box started the search at NaN and the fit stopped at iteration 0 with status `nonfinite`)."""
+    try:
+        mu, sigma = init
+    except (TypeError, ValueError):
+        raise ValueError(f"`init` must be a pair (mu, sigma), got {init!r}") from None
+    try:
+        sigma = float(sigma)
+        mu = float(mu) if fresnel else (None if mu is None else float(mu))
+    except (TypeError, ValueError):
+        raise ValueError(f"`init` must be a pair of numbers (mu, sigma), got {init!r}") from None
+    if not SIGMA_BOUNDS[0] <= sigma <= SIGMA_BOUNDS[1]:
+        raise ValueError(f"`init`: sigma must be in [{SIGMA_BOUNDS[0]}, {SIGMA_BOUNDS[1]}] (SIGMA_BOUNDS), got {sigma!r}")
+    if fresnel and not MU_BOUNDS[0] <= mu <= MU_BOUNDS[1]:
+        raise ValueError(f"`init`: mu must be in [{MU_BOUNDS[0]}, {MU_BOUNDS[1]}] (MU_BOUNDS) with Fresnel, got {mu!r}")
+    return mu, sigma
 
 
 def check_refine(refine) -> bool | None:

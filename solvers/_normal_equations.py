@@ -18,7 +18,7 @@ problem of the solvers goes through here:
   of the factorization's Schur complement).
 - `solve_spd_small`, `inverse_spd_small`: Gaussian elimination of
   small SPD systems in plain XLA ops (a rolled pivot loop).
-- `solve_sym2`, `solve_sym2_min_norm`, `inverse_sym2_diag`, `solve_grouped_shared`: the $2\\times2$
+- `solve_sym2`, `solve_sym2_min_norm`, `nonneg_sym2`, `inverse_sym2_diag`, `solve_grouped_shared`: the $2\\times2$
   $(K_d, K_s)$ eliminations of `fit_brdf` (per channel, per texel, and the
   Schur complement of one shared $K_s$ with a $K_d$ per texel).
 - `covariance_from_jacobian`: $\\mathrm{cov} = s^2 (J^TJ)^{+}$,
@@ -403,13 +403,21 @@ def solve_sym2(a11, a12, a22, r1, r2):
     """Solve $[[a_{11}, a_{12}], [a_{12}, a_{22}]]\\,x = r$ elementwise (Cramer); returns `x1, x2, bad`.
 
     `bad` flags near-singular systems ($\\det \\le 10^3\\epsilon\\,a_{11}a_{22}$ or a
-    non-positive diagonal), whose solution is returned as 0."""
-    det = a11 * a22 - a12 * a12
+    non-positive diagonal), whose solution is returned as 0. Solved in the Jacobi-scaled form (unit diagonal,
+    $c = a_{12}/\\sqrt{a_{11}a_{22}}$, $\\det = (1-c)(1+c)$), so the result does not depend on the units of the
+    weights: the unscaled determinant $a_{11}a_{22} - a_{12}^2$ underflows to 0 at weights of $10^{-200}$ and
+    overflows at $10^{200}$ in float64 (at $10^{\\mp 20}$ in float32)."""
+    ok = (a11 > 0) & (a22 > 0)
+    s1 = jnp.sqrt(jnp.where(ok, a11, 1.0))
+    s2 = jnp.sqrt(jnp.where(ok, a22, 1.0))
+    c = a12 / s1 / s2
+    det = (1.0 - c) * (1.0 + c)
     eps = jnp.finfo(det.dtype).eps
-    bad = ~(det > 1e3 * eps * a11 * a22) | ~(a11 > 0) | ~(a22 > 0)
+    bad = ~(det > 1e3 * eps) | ~ok
     det_s = jnp.where(bad, 1.0, det)
-    x1 = (a22 * r1 - a12 * r2) / det_s
-    x2 = (a11 * r2 - a12 * r1) / det_s
+    y1, y2 = r1 / s1, r2 / s2
+    x1 = (y1 - c * y2) / det_s / s1
+    x2 = (y2 - c * y1) / det_s / s2
     return jnp.where(bad, 0.0, x1), jnp.where(bad, 0.0, x2), bad
 
 
@@ -417,15 +425,31 @@ def solve_sym2_min_norm(a11, a12, a22, r1, r2):
     """`solve_sym2`, with the minimum-norm least-squares solution $A^+ r$ where it flags the system singular.
 
     A singular symmetric PSD $2\\times2$ $A$ has rank $\\le 1$, $A = \\lambda u u^T$, so
-    $A^+ = A / (\\mathrm{tr}\\,A)^2$ (0 for $A = 0$). `fit_brdf`'s homogeneous inner solve uses it: under
+    $A^+ = A / (\\mathrm{tr}\\,A)^2$ (0 for $A = 0$; formed as $((A/\\mathrm{tr})\\,r)/\\mathrm{tr}$, which neither
+    under- nor overflows where $A$ and $r$ do not). `fit_brdf`'s homogeneous inner solve uses it: under
     lighting that makes the diffuse and specular images proportional (uniform lighting, thesis sec. 3.2.2) the
     data still fix $K_d E + K_s S$, and the profiled residual is that fit's, not the data's. Returns `x1, x2, bad`.
     """
     x1, x2, bad = solve_sym2(a11, a12, a22, r1, r2)
     tr = a11 + a22
     pos = tr > 0
-    s = jnp.where(pos, 1.0 / jnp.where(pos, tr, 1.0) ** 2, 0.0)
-    return jnp.where(bad, (a11 * r1 + a12 * r2) * s, x1), jnp.where(bad, (a12 * r1 + a22 * r2) * s, x2), bad
+    t = jnp.where(pos, tr, 1.0)
+    p1 = jnp.where(pos, (a11 / t * r1 + a12 / t * r2) / t, 0.0)
+    p2 = jnp.where(pos, (a12 / t * r1 + a22 / t * r2) / t, 0.0)
+    return jnp.where(bad, p1, x1), jnp.where(bad, p2, x2), bad
+
+
+def nonneg_sym2(x1, x2, a11, a22, r1, r2):
+    """The solution of $\\min_{x \\ge 0} x^T A x - 2 r^T x$ for a PSD $2\\times2$ $A$, given the unconstrained
+    (or minimum-norm) minimizer `x1, x2`: kept where both are $\\ge 0$; otherwise the minimum lies on an edge,
+    $x = (\\max(r_1, 0)/a_{11}, 0)$ or $(0, \\max(r_2, 0)/a_{22})$, whichever lowers the objective more
+    ($r_1^2/a_{11}$ against $r_2^2/a_{22}$). Elementwise; returns `x1, x2`."""
+    p1, p2 = jnp.maximum(r1, 0.0), jnp.maximum(r2, 0.0)
+    o1 = jnp.where(a11 > 0, p1 / jnp.where(a11 > 0, a11, 1.0), 0.0)
+    o2 = jnp.where(a22 > 0, p2 / jnp.where(a22 > 0, a22, 1.0), 0.0)
+    first = o1 * p1 >= o2 * p2
+    neg = (x1 < 0) | (x2 < 0)
+    return jnp.where(neg, jnp.where(first, o1, 0.0), x1), jnp.where(neg, jnp.where(first, 0.0, o2), x2)
 
 
 def inverse_sym2_diag(a11, a12, a22):

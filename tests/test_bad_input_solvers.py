@@ -261,6 +261,14 @@ def test_fit_brdf_options(obs, opt):
     _raises_named(lambda: solvers.fit_brdf(obs, LIGHT, **{name: value}), name)
 
 
+@given(init=st.sampled_from([(1.5, -0.1), (0.5, 0.2), (np.nan, 0.2), (1.0, 0.2), (1.5, 0.0), (1.5, np.inf), (1.5,),
+                              "ab", (None, 0.2), (1.5, 2.0)]))
+def test_fit_brdf_init(obs, init):
+    """`init` outside the search box (`MU_BOUNDS`, `SIGMA_BOUNDS`) or not a pair of numbers: before, the search
+    started at NaN and stopped at iteration 0 with status `nonfinite`."""
+    _raises_named(lambda: solvers.fit_brdf(obs, LIGHT, init=init), "init")
+
+
 # --------------------------------------------------------------------------- fit_sharing
 
 

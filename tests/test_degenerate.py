@@ -10,6 +10,7 @@ lighting that rendered the images. Bad shapes and options (a `ValueError`)
 are in tests/test_bad_input_solvers.py.
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -217,6 +218,74 @@ def test_min_norm_two_by_two_solve_against_numpy_pinv(rng):
     want = np.stack([np.linalg.pinv(m) @ v for m, v in zip(a, r)])
     np.testing.assert_allclose(np.stack([x1, x2], 1), want, rtol=1e-9, atol=1e-12)
     assert np.asarray(bad).tolist() == [True] * 7 + [False]
+
+
+def test_two_by_two_solve_does_not_depend_on_the_units_of_the_weights(rng):
+    """`solve_sym2` in its Jacobi-scaled form: systems scaled by 1e-200 .. 1e200 (float64) give the same solution as
+    NumPy's solve of the unscaled system; the plain Cramer determinant under- or overflowed there (NaN kd)."""
+    from solvers._normal_equations import solve_sym2, solve_sym2_min_norm
+
+    a = np.array([[2.0, 0.5], [0.5, 1.0]])
+    r = rng.normal(size=2)
+    want = np.linalg.solve(a, r)
+    for s in (1e-200, 1e-100, 1.0, 1e100, 1e200):
+        for f in (solve_sym2, solve_sym2_min_norm):
+            x1, x2, bad = f(*(jnp.asarray(v) for v in (s * a[0, 0], s * a[0, 1], s * a[1, 1], s * r[0], s * r[1])))
+            np.testing.assert_allclose([float(x1), float(x2)], want, rtol=1e-12)
+            assert not bool(bad)
+    u = rng.normal(size=2)  # rank 1: the minimum-norm solution, also at extreme scales
+    for s in (1e-200, 1.0, 1e200):
+        m = np.outer(u, u) * s
+        x1, x2, _ = solve_sym2_min_norm(*(jnp.asarray(v) for v in (m[0, 0], m[0, 1], m[1, 1], s * r[0], s * r[1])))
+        np.testing.assert_allclose([float(x1), float(x2)], np.linalg.pinv(np.outer(u, u)) @ r, rtol=1e-10)
+
+
+def test_nonnegative_two_by_two_against_scipy_nnls(rng):
+    """`nonneg_sym2` (fit_brdf's kd, ks >= 0) equals `scipy.optimize.nnls` on random design matrices, many of
+    whose unconstrained solutions have a negative component."""
+    from scipy.optimize import nnls
+
+    from solvers._normal_equations import nonneg_sym2, solve_sym2_min_norm
+
+    n_neg = 0
+    for _ in range(200):
+        m = rng.normal(size=(6, 2))
+        b = rng.normal(size=6)
+        a = m.T @ m
+        r = m.T @ b
+        x1, x2, _ = solve_sym2_min_norm(*(jnp.asarray(v) for v in (a[0, 0], a[0, 1], a[1, 1], r[0], r[1])))
+        n_neg += bool(x1 < 0) | bool(x2 < 0)
+        y1, y2 = nonneg_sym2(x1, x2, *(jnp.asarray(v) for v in (a[0, 0], a[1, 1], r[0], r[1])))
+        np.testing.assert_allclose([float(y1), float(y2)], nnls(m, b)[0], atol=1e-12)
+    assert n_neg > 50
+
+
+def test_fit_brdf_never_returns_a_negative_albedo(gbs, lambertian_capture):
+    """Negated or offset images: the unconstrained inner solve gave kd, ks < 0 with status `converged` (a
+    `TorranceSparrow` its own constructor refuses). The fit is now the best nonnegative one: negated images give
+    kd = ks = 0 (relative RMS 1); an offset makes the fit worse, never negative."""
+    obs, _, sh = lambertian_capture
+    neg = eqx.tree_at(lambda o: o.values, obs, -obs.values)
+    res = solvers.fit_brdf(neg, jaxsh.Lighting(sh))
+    _ok(res)
+    assert np.all(np.asarray(res.brdf.kd) == 0) and np.all(np.asarray(res.brdf.ks) == 0)
+    np.testing.assert_allclose(float(res.rel_rms), 1.0, rtol=1e-12)
+    off = eqx.tree_at(lambda o: o.values, obs, obs.values - 0.5 * jnp.max(obs.values))
+    res = solvers.fit_brdf(off, jaxsh.Lighting(sh))
+    _ok(res)
+    assert np.all(np.asarray(res.brdf.kd) >= 0) and np.all(np.asarray(res.brdf.ks) >= 0)
+    solvers.TorranceSparrow(res.brdf.kd, res.brdf.ks, res.brdf.mu, res.brdf.sigma)  # a valid BRDF
+
+
+def test_fit_brdf_does_not_depend_on_the_units_of_the_weights(lambertian_capture):
+    """Uniform weights of 1e-200 or 1e200 (float64) give the fit of unit weights; they gave NaN kd before."""
+    obs, brdf, sh = lambertian_capture
+    ref = solvers.fit_brdf(obs, jaxsh.Lighting(sh))
+    for s in (1e-200, 1e200):
+        res = solvers.fit_brdf(eqx.tree_at(lambda o: o.weights, obs, obs.weights * s), jaxsh.Lighting(sh))
+        _ok(res, ref.status_name)
+        np.testing.assert_allclose(np.asarray(res.brdf.kd), np.asarray(ref.brdf.kd), rtol=1e-9)
+        np.testing.assert_allclose(float(res.rel_rms), float(ref.rel_rms), rtol=1e-6, atol=1e-12)
 
 
 def test_small_spd_solve_against_numpy(rng):
