@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 import sys
 
 import jax.numpy as jnp
@@ -259,6 +260,23 @@ def check_outputs(m: dict, out_dir, names) -> list[str]:
             raise ValueError(f"--out {out_dir}: the output {p} is a directory")
         outs.append(p)
     return outs
+
+
+# The names of the files `jaxsh fit` and `jaxsh render` write into `--out`
+_OUTPUT_NAME = re.compile(r"view_\d{3}\.(exr|png)|result\.json|lighting\.(exr|png)|brdf_rbf\.npz|k[ds]\.exr")
+
+
+def stale_outputs(out_dir, written) -> list[str]:
+    """The files of `out_dir` named like an output of `jaxsh fit` / `jaxsh render` that are not in `written` (output
+    paths of this run), sorted: left by an earlier run into the same folder (e.g. `view_005.exr` of a capture with
+    more views). The commands never delete them; they name them (`solvers/cli.py`)."""
+    mine = {os.path.realpath(p) for p in written}
+    try:
+        names = os.listdir(out_dir)
+    except OSError:
+        return []
+    return sorted(os.path.join(out_dir, f) for f in names
+                  if _OUTPUT_NAME.fullmatch(f) and os.path.realpath(os.path.join(out_dir, f)) not in mine)
 
 
 def render_manifest(manifest_path, out_dir, progress: bool = True) -> list[str]:

@@ -231,7 +231,20 @@ def _fit_one(path, out, mesh) -> int:
     else:
         print(f"kd {b['kd']}  ks {b['ks']}  mu {b['mu']}  sigma {b['sigma']}")
     print(f"results in {out}/")
+    from ._fit_manifest import _out_names
+    from ._render_manifest import stale_outputs
+    from jaxsh import io as jio
+
+    _warn_stale(out, stale_outputs(out, [os.path.join(out, f) for f in _out_names(jio.read_manifest(path))]))
     return 0 if result["status"] in ("converged", "ill_conditioned") else 1
+
+
+def _warn_stale(out, stale) -> None:
+    """Name the files of an earlier run that this one did not replace (they are not deleted)."""
+    if stale:
+        shown = ", ".join(os.path.basename(p) for p in stale[:6]) + (", ..." if len(stale) > 6 else "")
+        print(f"note: {out}/ also holds {len(stale)} file(s) of an earlier run that this run did not write: {shown} "
+              "(not deleted; use an empty --out folder to keep runs apart)", file=sys.stderr)
 
 
 def _render(args) -> int:
@@ -242,6 +255,9 @@ def _render(args) -> int:
     with jax.enable_x64(True):
         written = render_manifest(args.manifest, args.out)
     print(f"wrote {len(written)} files to {args.out}/")
+    from ._render_manifest import stale_outputs
+
+    _warn_stale(args.out, stale_outputs(args.out, written))
     return 0
 
 

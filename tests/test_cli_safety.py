@@ -132,6 +132,38 @@ def test_render_into_the_manifests_folder_without_collision(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["capture.json", "view_000.exr", "view_000.png"]
 
 
+def test_files_of_an_earlier_run_are_named_not_deleted(tmp_path, capsys):
+    """A second run into the same folder replaces its own outputs and names those of the earlier run that it did not
+    write (here the views of a capture with two views, rendered again with one), leaving them in place."""
+    p = manifest(tmp_path)
+    m = json.loads(p.read_text())
+    m["views"] *= 2
+    p2 = tmp_path / "two.json"
+    p2.write_text(json.dumps(m))
+    out = tmp_path / "out"
+    assert main(["render", str(p2), "--out", str(out)]) == 0
+    assert "earlier run" not in capsys.readouterr().err
+    (out / "notes.txt").write_text("mine")  # not an output name: never reported
+    assert main(["render", str(p), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "also holds 2 file(s) of an earlier run that this run did not write: view_001.exr, view_001.png" in err
+    assert sorted(os.listdir(out)) == ["notes.txt", "view_000.exr", "view_000.png", "view_001.exr", "view_001.png"]
+
+
+def test_fit_names_the_files_of_an_earlier_run(tmp_path, capsys):
+    p = manifest(tmp_path, fit=True)
+    m = json.loads(p.read_text())
+    m["views"] *= 2
+    p2 = tmp_path / "two.json"
+    p2.write_text(json.dumps(m))
+    out = tmp_path / "out"
+    main(["fit", str(p2), "--out", str(out)])
+    capsys.readouterr()
+    main(["fit", str(p), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert "also holds 2 file(s) of an earlier run that this run did not write: view_001.exr, view_001.png" in err
+
+
 def test_interrupted_render_leaves_no_partial_file(tmp_path, capsys, monkeypatch):
     p = manifest(tmp_path)
     out = tmp_path / "out"
