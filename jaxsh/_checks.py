@@ -88,6 +88,31 @@ def as_float_array(x, name: str, complex_ok: bool = False):
     return x
 
 
+def as_float_scalar(x, name: str):
+    """`x` as a floating JAX scalar (shape `()`; dtype rule of `as_float_array`).
+
+    Any other shape is a `ValueError` "`name` must be a scalar (shape ()), got shape (...)": a parameter
+    annotated `Real[ArrayLike, ""]` is never broadcast or summed over silently.
+    """
+    x = as_float_array(x, name)
+    if x.shape != ():
+        raise ValueError(f"`{name}` must be a scalar (shape ()), got shape {tuple(x.shape)}")
+    return x
+
+
+def common_dtype(*arrays):
+    """The float dtype several arrays are computed in: `jnp.result_type` of the arrays themselves.
+
+    The arrays, not their dtypes: a Python scalar (weakly typed after `as_float_array`) adopts the dtype of
+    the other arrays (float32 stays float32 under `jax_enable_x64`). When strict promotion
+    (`jax_numpy_dtype_promotion="strict"`) refuses to combine float32 and float64, the widest dtype.
+    """
+    try:
+        return jnp.result_type(*arrays)
+    except jax.dtypes.TypePromotionError:
+        return max((jnp.dtype(a.dtype) for a in arrays), key=lambda d: d.itemsize)
+
+
 def check_dtype(dtype, name: str = "dtype"):
     """A `dtype=` keyword: None (the default float) or float32/float64."""
     if dtype is None:

@@ -116,12 +116,21 @@ def real_to_complex_coeffs(coeffs: Real[ArrayLike, "..."], channels: bool | None
     return jnp.einsum("ij,...j->...i", ub, c)
 
 
-def complex_to_real_coeffs(coeffs: Inexact[ArrayLike, "..."], channels: bool | None = None) -> Float[Array, "..."]:
+def complex_to_real_coeffs(coeffs: Num[ArrayLike, "..."], channels: bool | None = None) -> Float[Array, "..."]:
     """Real SH coefficients $c = U^{\\mathsf T} a$ of a complex expansion (the real part of the function's coefficients).
 
     Exact inverse of `real_to_complex_coeffs` for coefficients of real functions.
+
+    **Arguments:** `coeffs`: complex (or real) coefficients `(..., n_coeffs)`
+    or `(..., n_coeffs, C)`; `channels`: see `rotate_sh` (layout inference).
+    Integer and bool input go to the default float (float64 under
+    `jax_enable_x64`, so no digits are lost), float16/bfloat16 and
+    non-numeric input are a `ValueError` (`jaxsh._checks`).
+
+    **Returns:** real coefficients, same layout: float64 for complex128 or
+    float64 input, float32 for complex64 or float32 input.
     """
-    coeffs = jnp.asarray(coeffs)
+    coeffs = as_float_array(coeffs, "coeffs", complex_ok=True)
     lmax, axis = coeff_layout(coeffs.shape, "coeffs", channels)
     cdt = jnp.complex128 if coeffs.dtype in (jnp.complex128, jnp.float64) else jnp.complex64
     ut = jnp.asarray(real_to_complex_matrix(lmax).T, cdt)

@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, lmax_from_size
+from ._checks import as_float_array, as_float_scalar, check_dirs, check_dtype, check_lmax, check_positive_int, lmax_from_size
 from ._indexing import sh_degrees, sh_lambda, sh_orders
 from ._rotation import wigner_d_y
 from ._sh import complex_sh
@@ -117,11 +117,15 @@ def brdf_incident_coefficients(
     D^l_{mq}(\\alpha)e^{im\\beta}\\hat\\rho_{lq}(\\omega_o')$ exactly for lighting
     band-limited to `lmax` (see `reflect_sh`). Flat `(n_coeffs,)` layout,
     real (the transfer function is even in Δφ); $\\hat\\rho_{l,-q} = (-1)^q\\hat\\rho_{lq}$.
+
+    **Arguments:** `transfer` as in the module docstring; `theta_o`: a
+    scalar (shape `()`; another shape is a `ValueError` naming it: one view
+    per call); `lmax` ≥ 0; `n_theta`, `n_phi`: quadrature sizes.
     """
     lmax = check_lmax(lmax)
     nt = check_positive_int(n_theta, "n_theta")
     npf = check_positive_int(n_phi, "n_phi")
-    theta_o = as_float_array(theta_o, "theta_o")
+    theta_o = as_float_scalar(theta_o, "theta_o")
     dt = jnp.result_type(_default_dtype(dtype), theta_o.dtype)
     th, w = _hemisphere_nodes(nt, dt)
     # Y_lq(θi, φi) with Δ = φo − φi = −φi: ∫ g(Δ) e^{iqφi} dφi = ∫ g(Δ) e^{-iqΔ} dΔ = G_q (g even).
@@ -169,10 +173,18 @@ def light_field_basis(
     """$C_{lmpq}(\\alpha, \\beta, \\omega_o') = \\Lambda_l^{-1} D^l_{mq}(\\alpha) e^{im\\beta} Y_{pq}(\\omega_o')$ (R&H eq. 9).
 
     Same layout as `light_field_coefficients` (entries with |q| > l or |q| > p are 0).
+
+    **Arguments:** `alpha`, `beta`: the normal's angles, scalars (shape
+    `()`); `wo_local`: the local view direction `(3,)` (normalized by
+    `complex_sh`); `lmax` ≥ 0. Another shape is a `ValueError` naming the
+    argument.
     """
     lmax = check_lmax(lmax)
-    alpha = as_float_array(alpha, "alpha")
-    beta = as_float_array(beta, "beta")
+    alpha = as_float_scalar(alpha, "alpha")
+    beta = as_float_scalar(beta, "beta")
+    wo_local = check_dirs(wo_local, "wo_local")
+    if wo_local.shape != (3,):
+        raise ValueError(f"`wo_local` must have shape (3,), got {tuple(wo_local.shape)}")
     d = wigner_d_y(alpha, lmax)  # (n, n) block-diagonal in the complex basis
     ls, ms = sh_degrees(lmax), sh_orders(lmax)
     q = np.arange(-lmax, lmax + 1)
@@ -239,18 +251,27 @@ def reflect_sh(
     with `rho_i` from `brdf_incident_coefficients(transfer, theta_o, lmax)` and
     `L` complex lighting coefficients of the same lmax. Exact for lighting
     band-limited to lmax. Returns the real radiance.
+
+    **Arguments:** `L`, `rho_i`: `(n_coeffs,)` each; `alpha`, `beta`,
+    `phi_o`: scalars (shape `()`). One normal and view per call: an array
+    of angles is a `ValueError` naming the argument (it is not summed or
+    broadcast over; `jax.vmap` evaluates many).
+
+    **Returns:** a scalar `()`.
     """
     L = as_float_array(L, "L", complex_ok=True)
     rho_i = as_float_array(rho_i, "rho_i")
     if L.ndim != 1 or rho_i.shape != L.shape:
         raise ValueError(f"`L` and `rho_i` must both have shape (n_coeffs,), got {L.shape} and {rho_i.shape}")
     lmax = lmax_from_size(L.shape[0], "L")
-    alpha = as_float_array(alpha, "alpha")
+    alpha = as_float_scalar(alpha, "alpha")
+    beta = as_float_scalar(beta, "beta")
+    phi_o = as_float_scalar(phi_o, "phi_o")
     ms = sh_orders(lmax)
     d = wigner_d_y(alpha, lmax).astype(L.dtype)  # d[(l,m),(l,q)]
     mf = jnp.asarray(ms, alpha.dtype)
-    phase_m = _expi(mf * jnp.asarray(beta, alpha.dtype)).astype(L.dtype)
-    phase_q = _expi(mf * jnp.asarray(phi_o, alpha.dtype)).astype(L.dtype)
+    phase_m = _expi(mf * beta.astype(alpha.dtype)).astype(L.dtype)
+    phase_q = _expi(mf * phi_o.astype(alpha.dtype)).astype(L.dtype)
     return jnp.real(jnp.sum((L * phase_m) * (d @ (rho_i.astype(L.dtype) * phase_q))))
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 from ._custom_types import ScalarLike, SequenceLike
 
-from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_values, coeff_layout
+from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_values, coeff_layout, common_dtype
 from ._compile import jit
 from ._convolution import convolve
 from ._indexing import sh_degrees
@@ -92,7 +92,10 @@ def disk_light_sh(
     `lmax` ≥ 0. An out-of-range radius or radiance is an error
     (`ValueError`, or a run-time error under `jit`); NaN propagates.
 
-    **Returns:** `(n_coeffs,)` for a scalar radiance, else `(n_coeffs, C)`.
+    **Returns:** `(n_coeffs,)` for a scalar radiance, else `(n_coeffs, C)`,
+    in the dtype of the array arguments (Python scalars adopt it: a float32
+    `direction` with Python-float radius and radiance gives float32; float32
+    with float64 arrays gives float64).
     """
     direction = check_nonzero_dirs(direction, "direction")
     if direction.shape != (3,):
@@ -106,7 +109,7 @@ def disk_light_sh(
     lmax = check_lmax(lmax)
     r = _check_radius(r)
     rad = _non_negative(rad, "radiance")
-    dt = jnp.result_type(direction.dtype, r.dtype, rad.dtype)
+    dt = common_dtype(direction, r, rad)  # of the arrays, not their dtypes: Python scalars stay weak
     return _disk_light_sh(direction.astype(dt), r.astype(dt), rad.astype(dt), lmax)
 
 
@@ -167,19 +170,25 @@ def filter_lighting_microfacet(coeffs: Real[ArrayLike, "n_coeffs *C"], sigma: Re
 
     `coeffs` `(n_coeffs,)` or `(n_coeffs, C)`; `sigma` > 0 (σ ≤ 0 is an
     error: `ValueError`, or a run-time error under `jit`). NaN in, NaN out.
+
+    **Returns:** the layout of `coeffs`, in its dtype when `sigma` is a
+    Python scalar (float32 stays float32); float32 with a float64 `sigma`
+    array gives float64.
     """
     coeffs = as_float_array(coeffs, "coeffs")
     if coeffs.ndim not in (1, 2):
         raise ValueError(f"`coeffs` must have shape (n_coeffs,) or (n_coeffs, C), got {tuple(coeffs.shape)}")
     lmax, _ = coeff_layout(coeffs.shape, "coeffs", channels=coeffs.ndim == 2)
-    a = microfacet_spectrum(as_float_array(sigma, "sigma"), lmax)
-    return convolve(coeffs, a, channels=coeffs.ndim == 2)
+    sigma = as_float_array(sigma, "sigma")
+    dt = common_dtype(coeffs, sigma)  # a Python-scalar sigma (weakly typed) adopts the dtype of `coeffs`
+    a = microfacet_spectrum(sigma.astype(dt), lmax)
+    return convolve(coeffs.astype(dt), a, channels=coeffs.ndim == 2)
 
 
 def split_disk_sources(
     directions: Real[ArrayLike, "K 3"] | SequenceLike,
     angular_radii: Real[ArrayLike, " K"] | SequenceLike,
-    radiance: Real[ArrayLike, "K C"] | SequenceLike,
+    radiance: Real[ArrayLike, "K *C"] | SequenceLike,
     sigma: float,
     lmax: int,
     ratio: float = 0.25,
@@ -192,25 +201,61 @@ def split_disk_sources(
     The split is decided on concrete values (a Python-level choice), so
     call it outside `jit`.
 
-    **Returns:** `(slow_sh (n_coeffs, C) or None, fast_directions (J, 3) or None, fast_energy (J, C) or None)`.
+    **Arguments:**
+
+    - `directions`: `(K, 3)`, the disks' centres (normalized here; a zero or
+      non-finite direction is an error).
+    - `angular_radii`: `(K,)`, in $(0, \\pi]$.
+    - `radiance`: `(K, C)` (or `(K,)`, one channel), ≥ 0.
+    - `sigma`: the roughness σ (radians); `lmax` ≥ 0; `ratio` > 0.
+
+    Any other shape is a `ValueError` naming the argument and the expected
+    shape: a transposed `(3, K)` or `(C, K)` array is not reinterpreted.
+    Integer input goes to the default float; float16 and complex input are
+    a `ValueError`.
+
+    **Returns:** `(slow_sh (n_coeffs, C) or None, fast_directions (J, 3) or None, fast_energy (J, C) or None)`,
+    in the float dtype of the arrays (float32 stays float32; float32 with
+    float64 gives float64). `slow_sh` is a JAX array (the sum of
+    `disk_light_sh`), `fast_directions` and `fast_energy` are NumPy arrays
+    (computed on the host: their count varies with σ, and eager JAX
+    operations on each new shape would compile a program).
     """
-    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    r = np.asarray(angular_radii, dtype=np.float64).reshape(-1)
-    rad = np.asarray(radiance, dtype=np.float64).reshape(d.shape[0], -1)
-    if r.shape[0] != d.shape[0]:
-        raise ValueError(f"`angular_radii` must have shape ({d.shape[0]},), got {r.shape}")
-    if np.any(r <= 0) or np.any(r > np.pi):
-        raise ValueError("`angular_radii` must be in (0, pi]")
+    d = _host_float(directions, "directions")
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise ValueError(f"`directions` must have shape (K, 3), got {d.shape}")
+    k = d.shape[0]
+    r = _host_float(angular_radii, "angular_radii")
+    if r.shape != (k,):
+        raise ValueError(f"`angular_radii` must have shape ({k},) (one per direction), got {r.shape}")
+    rad = _host_float(radiance, "radiance")
+    if rad.ndim not in (1, 2) or rad.shape[0] != k:
+        raise ValueError(f"`radiance` must have shape ({k}, C) or ({k},) (one row per direction), got {rad.shape}")
+    dt = np.result_type(d.dtype, r.dtype, rad.dtype)  # float32 or float64 (NumPy: float32 + float64 -> float64)
+    d, r, rad = d.astype(dt, copy=False), r.astype(dt, copy=False), rad.reshape(k, -1).astype(dt, copy=False)
+    n2 = np.einsum("ki,ki->k", d, d)
+    if n2.size and not (n2.min() > 0 and n2.max() < np.inf):
+        raise ValueError("`directions` contains a zero-length or non-finite direction (directions are normalized, so they must be finite and non-zero)")
+    d = d / np.sqrt(n2)[:, None]
+    _check_radius(r, "angular_radii")
     fast = r < ratio * float(sigma)
     slow_sh = None
-    for k in np.nonzero(~fast)[0]:
-        c = disk_light_sh(d[k] / np.linalg.norm(d[k]), r[k], rad[k], lmax)
+    for j in np.nonzero(~fast)[0]:
+        c = disk_light_sh(d[j], r[j], rad[j], lmax)
         slow_sh = c if slow_sh is None else slow_sh + c
     if not np.any(fast):
         return slow_sh, None, None
-    fd = d[fast] / np.linalg.norm(d[fast], axis=1, keepdims=True)
+    fd = d[fast]
     # `disk_energy` in NumPy: the count of fast sources varies with sigma, and eager JAX operations on a new
     # shape each compile a small program (5 of them, 0.15 s a call)
     rf = _non_negative(rad[fast], "radiance")
-    fe = 4 * np.pi * np.sin(r[fast][:, None] / 2) ** 2 * rf
-    return slow_sh, fd, fe
+    fe = (4 * np.pi) * np.sin(r[fast][:, None] / 2) ** 2 * rf
+    return slow_sh, fd, fe.astype(dt, copy=False)
+
+
+def _host_float(x, name: str) -> np.ndarray:
+    """`x` as a NumPy float array on the host, by the dtype rule of `as_float_array` (integers to the default
+    float, float16 and complex a `ValueError`), without a JAX array for NumPy input (no device round trip)."""
+    if isinstance(x, (np.ndarray, np.generic)) and x.dtype in (np.float32, np.float64):
+        return np.asarray(x)
+    return np.asarray(as_float_array(x, name))

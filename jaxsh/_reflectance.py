@@ -90,7 +90,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._compile import jit
-from ._checks import as_float_array, check_dirs
+from ._checks import as_float_array, check_dirs, common_dtype
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -107,10 +107,7 @@ def _as_param(x, name: str):
 
 
 def _common_dtype(arrays):
-    try:
-        return jnp.result_type(*arrays)
-    except jax.dtypes.TypePromotionError:  # strict promotion refuses float32 + float64: widest
-        return max((a.dtype for a in arrays), key=lambda d: jnp.dtype(d).itemsize)
+    return common_dtype(*arrays)  # Python scalars adopt the arrays' dtype; strict promotion: the widest
 
 
 def _prepare(args):
@@ -382,6 +379,9 @@ def _half_angle(wi, wo, n):
     return _safe_sqrt(_theta_h_sq(*_half_angle_parts(wi + wo, n)))
 
 
+_half_angle_jit = jit(_half_angle)
+
+
 def half_angle(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"], n: Real[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch"]:
     """The half angle $\\theta_h = \\angle(\\omega_i + \\omega_o, n)$ of R&H eq. 23, gradient-safe.
 
@@ -397,10 +397,16 @@ def half_angle(wi: Real[ArrayLike, "*#batch 3"], wo: Real[ArrayLike, "*#batch 3"
     `practical_terms`, `torrance_sparrow` and `solvers.factorize`); 0 where
     $\\omega_i = -\\omega_o$.
 
-    **Returns:** `(...)`.
+    **Arguments:** `wi`, `wo`, `n`: unit vectors `(..., 3)`, validated as in
+    `torrance_sparrow`: another last axis, or leading (batch) dimensions that
+    do not broadcast, are a `ValueError` naming the argument; integer input
+    goes to the default float, float16/bfloat16 and complex input are a
+    `ValueError`; float32 stays float32 (several dtypes: the widest).
+
+    **Returns:** `(...)`, the broadcast batch shape.
     """
-    wi, wo, n = (jnp.asarray(x) for x in (wi, wo, n))
-    return _half_angle(wi, wo, n)
+    wi, wo, n = _prepare([("wi", wi, "dir"), ("wo", wo, "dir"), ("n", n, "dir")])
+    return _half_angle_jit(wi, wo, n)
 
 
 def tangent_frame(
@@ -428,25 +434,36 @@ def _tangent_frame(n, t):
 
 
 def _rusinkiewicz_local(wi, wo):
-    """(θh, φh, θd, φd) of local-frame directions (normal +z, tangent +x)."""
+    """(θh, φh, θd, φd) of local-frame directions (normal +z, tangent +x).
+
+    θd is the angle between ωi and the half vector h, taken from the two
+    smooth quantities $\\cos\\theta_d = h\\cdot\\omega_i$ and
+    $\\sin\\theta_d = |h\\times\\omega_i|$ (the z component and the length of the
+    xy part of $d = R_y(-\\theta_h)R_z(-\\phi_h)\\,\\omega_i$, which the rotation
+    preserves). No azimuth of h enters, so its gradient is right at
+    θh = 0 (the mirror configuration): there φh is undefined, and the
+    rotated frame used below for φd alone falls back to φh = 0, a frame
+    that does not follow h (which made the old `dz` lose its derivative).
+    """
     ez = jnp.zeros_like(wi).at[..., 2].set(1.0)
     h = _safe_normalize(wi + wo, ez)
     hx, hy, hz = h[..., 0], h[..., 1], h[..., 2]
     sin_h = _safe_sqrt(hx * hx + hy * hy)
     theta_h = jnp.arctan2(sin_h, hz)
     phi_h = _safe_atan2(hy, hx)
+    # θd = atan2(|h × ωi|, h · ωi): smooth in (ωi, ωo) wherever θd > 0, θh = 0 included
+    hxw = jnp.cross(h, wi)
+    theta_d = jnp.arctan2(_safe_sqrt(_dot(hxw, hxw)), _dot(h, wi))
     # cos φh, sin φh; (1, 0) where φh is undefined (h along the normal).
     ok = sin_h > 0.0
     inv = 1.0 / jnp.where(ok, sin_h, 1.0)
     cph = jnp.where(ok, hx * inv, 1.0)
     sph = jnp.where(ok, hy * inv, 0.0)
-    # d = R_y(-θh) R_z(-φh) ωi  (Rusinkiewicz 1998, sec. 3)
+    # the x, y components of d = R_y(-θh) R_z(-φh) ωi (Rusinkiewicz 1998, sec. 3), for φd
     x, y, z = wi[..., 0], wi[..., 1], wi[..., 2]
     a = cph * x + sph * y
     dy = -sph * x + cph * y
     dx = hz * a - sin_h * z
-    dz = sin_h * a + hz * z
-    theta_d = jnp.arctan2(_safe_sqrt(dx * dx + dy * dy), dz)
     phi_d = _safe_atan2(dy, dx)
     return theta_h, _wrap_2pi(phi_h), theta_d, _wrap_2pi(phi_d)
 
@@ -473,6 +490,17 @@ def rusinkiewicz_angles(
     $\\phi_h$, $\\theta_d = 0$ for $\\phi_d$) it is 0. Values and gradients
     are finite everywhere ($\\omega_i = -\\omega_o$ gives $\\omega_h = n$).
     Inverse: `rusinkiewicz_directions`.
+
+    $\\theta_d$ is computed as $\\operatorname{atan2}(|\\omega_h\\times\\omega_i|,
+    \\omega_h\\cdot\\omega_i)$ ($\\cos\\theta_d = \\omega_h\\cdot\\omega_i$ is the
+    z component of $d$, $\\sin\\theta_d$ the length of its xy part), not
+    through $\\phi_h$: it is smooth across the mirror configuration
+    $\\theta_h = 0$ ($\\omega_i$ = `reflect(wo, n)`), and its gradient there
+    is the true one (e.g. $\\partial\\theta_d/\\partial\\theta_o = 1/2$ for
+    $\\omega_o$ moving in the plane of incidence), equal to a central
+    difference. $\\theta_h$ itself is a cone at 0 (no derivative there; the
+    gradient returned is finite, 0 at an exact zero, as for `half_angle`),
+    and $\\phi_h$, $\\phi_d$ jump there.
 
     **Arguments:**
 
@@ -572,7 +600,12 @@ def uvw_from_directions(
     Symmetric in `wi` and `wo` and independent of the tangent. At
     $\\theta_d = 0$ ($\\omega_i = \\omega_o$), where $\\phi_d$ is undefined,
     $\\phi_d = 0$ is used: the value is finite (but $(u, v)$ is discontinuous
-    there unless $\\theta_h = 0$), and so are the gradients.
+    there unless $\\theta_h = 0$), and so are the gradients. $w = 2\\theta_d/\\pi$
+    with $\\theta_d = \\operatorname{atan2}(|\\omega_h\\times\\omega_i|,
+    \\omega_h\\cdot\\omega_i)$ (`rusinkiewicz_angles`): smooth, with its true
+    gradient, at the mirror configuration $\\theta_h = 0$ too.
+
+    **Arguments:** `wi`, `wo`, `n`: unit vectors `(..., 3)` (broadcast).
 
     **Returns:** `(..., 3)`.
     """

@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._compile import jit
-from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, check_values
+from ._checks import as_float_array, check_dtype, check_lmax, check_positive_int, check_values, common_dtype
 
 
 def _default_dtype(dtype):
@@ -220,6 +220,10 @@ def torrance_sparrow_spectrum(
     **Arguments:** `sigma` > 0; `theta_o` in $[0, \\pi/2)$; `mu` ≥ 1 (the
     index of refraction) or None; all scalars. Out-of-range values are an
     error (`ValueError`, or a run-time error under `jit`); NaN in, NaN out.
+
+    **Returns:** `(lmax+1,)`, in the dtype of the array arguments: Python
+    scalars (the default `theta_o=0.0` included) adopt it, so a float32
+    `sigma` gives float32; float32 with float64 gives float64.
     """
     from ._reflectance import fresnel_normalized  # local import: optional coupling
 
@@ -238,7 +242,11 @@ def torrance_sparrow_spectrum(
         mu = check_values(mu, lambda a: (a < 1) | (a == jnp.inf), "mu", "in [1, inf) (an index of refraction)")
     nt = check_positive_int(n_theta, "n_theta")
     npf = check_positive_int(n_phi, "n_phi")
-    dt = jnp.result_type(sigma.dtype, theta_o.dtype)
+    # of the arrays, not of their dtypes: a Python scalar (weakly typed) adopts the others' dtype
+    dt = common_dtype(sigma, theta_o) if mu is None else common_dtype(sigma, theta_o, mu)
+    sigma, theta_o = sigma.astype(dt), theta_o.astype(dt)
+    if mu is not None:
+        mu = mu.astype(dt)
     x, wx = np.polynomial.legendre.leggauss(nt)
     phi = 2 * np.pi * (np.arange(npf) + 0.5) / npf
     umin = jnp.cos(jnp.minimum(12.0 * sigma, jnp.pi)).astype(dt)  # the lobe beyond 12σ is below e^-36
