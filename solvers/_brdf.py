@@ -229,12 +229,19 @@ def fit_brdf(
       the estimate equal to 2e-11 to that of an all-sample search, the warm
       fit 2.8 s → 1.5 s.
     - `max_steps`, `rtol`, `atol`: simplex / LM limits (tolerances default to
-      1e-8 in float64 and 1e-5 in float32).
+      1e-8 in float64 and 1e-5 in float32). The simplex minimizes the weighted
+      RSS over the data's mean weighted square, and LM its residual over the
+      root of that: `atol` is relative to the data, so the fit and its status
+      do not depend on the radiometric units (within float32's range,
+      docs/conventions.md).
     - `throw`: raise `solvers.SolveError` unless the status is `converged`
       (default False: check `result.status`).
 
-    **Returns:** `BRDFResult`. Non-convergence and singular inner systems are
-    reported in `status`. $\\mu$ and $\\sigma$ are searched in the box
+    **Returns:** `BRDFResult`. $K_d, K_s \\ge 0$: at each $(\\mu, \\sigma)$ they are
+    the nonnegative least-squares solution (for `textured="kd"`, the
+    unconstrained one), so data that a negative albedo would fit better
+    (negative or offset radiance) get the best physical fit and its residual.
+    Non-convergence and singular inner systems are reported in `status`. $\\mu$ and $\\sigma$ are searched in the box
     `MU_BOUNDS` = [1.001, 10], `SIGMA_BOUNDS` = [1e-3, 1.5] rad: when the data
     do not determine one (e.g. only directional lights and near-normal views:
     $F(\\mu, \\theta_o) \\approx 1$ for every $\\mu$), the fit converges with it at
@@ -362,11 +369,17 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     wall = jnp.maximum(jnp.sum(w[:, None] * b * b), jnp.finfo(dt).tiny)
     s_wall = wall if search is None else jnp.maximum(jnp.sum(s_w[:, None] * s_b * s_b), jnp.finfo(dt).tiny)
 
+    # The searches run in units of the data: the objective over the mean weighted square of the data, the LM
+    # residual over its root, so that the absolute tolerances `atol` mean the same at every radiometric scale
+    # (before, noise-free images x1e30 in float64, x1e10 in float32, stopped at `max_steps_reached`).
+    s_unit = s_wall / jnp.maximum(jnp.sum((s_w > 0).astype(dt)) * b.shape[1], 1.0)
+    unit = wall / jnp.maximum(nobs, 1.0)
+
     def objective(u, _):
         u = u.astype(dt)
         uc = jnp.clip(u, lo, hi)
         r, _aux = profiled_on(s_terms, s_b, s_w, s_sw, uc)
-        return (jnp.sum(r * r) + s_wall * jnp.sum((u - uc) ** 2)).astype(pdt)
+        return ((jnp.sum(r * r) + s_wall * jnp.sum((u - uc) ** 2)) / s_unit).astype(pdt)
 
     # Start: best grid point (evaluated one at a time), then the simplex of R&H sec. 6.1. Memory O(N): `lax.map`, not a vmap over the grid.
     grid_vals = jax.lax.map(lambda u: objective(u, None), u_grid.astype(pdt))
@@ -388,7 +401,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             uu = jnp.where(pinned, u, p.astype(dt))
             uc = jnp.clip(uu, lo, hi)
             r, _aux = profiled(uc)
-            return jnp.concatenate([r.reshape(-1), jnp.sqrt(wall) * (uu - uc)]).astype(pdt)
+            return (jnp.concatenate([r.reshape(-1), jnp.sqrt(wall) * (uu - uc)]) / jnp.sqrt(unit)).astype(pdt)
 
         p0 = u.astype(pdt)
         # `explicit_jacobian`: the solver's state then holds the (m, 2) Jacobian, not the residual's intermediates

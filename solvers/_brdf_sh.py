@@ -174,7 +174,9 @@ def _fit_brdf_sh(obs, L, lmax, cols, rcond):
     data_ss = jnp.sum(obs.weights[:, None] * obs.values**2)
     rms, rel = rms_pair(jnp.sum(rss), data_ss, nobs)
     # sv[:, 0]: the largest singular value of each channel's design, 0 under all-zero lighting (no signal)
-    status = worst(Status.where(jnp.all(jnp.isfinite(rho)), Status.converged, Status.nonfinite), signal_status(data_ss),
+    # a residual or data energy that overflowed (float32 data beyond ~1e15, docs/conventions.md) is not converged
+    finite = jnp.all(jnp.isfinite(rho)) & jnp.isfinite(rms) & jnp.isfinite(data_ss)
+    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss),
                    signal_status(jnp.min(sv[:, 0])))
     return BRDFSHResult(rho=rho, rank=rank, n_unknowns=int(cols.shape[0]), status=status, rms=rms, rel_rms=rel,
                         iterations=jnp.asarray(0), stats={"singular_values": sv, "n_obs": nobs})

@@ -11,6 +11,7 @@ are in tests/test_bad_input_solvers.py.
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -152,6 +153,17 @@ def test_fit_brdf_zero_lighting_is_no_signal(ones_obs):
     _ok(solvers.fit_brdf(ones_obs, jaxsh.Lighting(np.zeros((9, 3))), max_steps=10), "no_signal")
     one_dark = np.eye(9, 3) * [1.0, 1.0, 0.0]  # channel 2 unlit
     _ok(solvers.fit_brdf(ones_obs, jaxsh.Lighting(one_dark), max_steps=10), "no_signal")
+
+
+def test_fit_brdf_sh_overflowing_float32_data_is_not_converged(gbs):
+    """float32 images of 1e20: the residual's sum of squares overflows (docs/conventions.md, the float32 range);
+    the status was `converged` with rms inf and rel_rms NaN, and is `nonfinite` now. The same data at 1 converge."""
+    for scale, want in ((1.0, "converged"), (1e20, "nonfinite")):
+        imgs = [np.full(np.asarray(g.mask).shape + (3,), scale, np.float32) for g in gbs]
+        obs = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a,
+                                     solvers.observations(gbs, imgs))
+        res = solvers.fit_brdf_sh(obs, np.eye(9, 3, dtype=np.float32) + 1, 2)
+        assert res.status_name == want, (scale, res.status_name, res.rms)
 
 
 def test_fit_brdf_sh_zero_lighting_is_no_signal(ones_obs):
