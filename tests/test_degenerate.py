@@ -300,6 +300,26 @@ def test_fit_brdf_does_not_depend_on_the_units_of_the_weights(lambertian_capture
         np.testing.assert_allclose(float(res.rel_rms), float(ref.rel_rms), rtol=1e-6, atol=1e-12)
 
 
+def test_fit_brdf_status_does_not_depend_on_the_radiometric_units(lambertian_capture):
+    """Noise-free images (sky and sun) in units 1e-30 .. 1e30 (float64): the same status and estimate (the
+    simplex's path may differ by rounding). Its absolute tolerance was applied to the RSS in the data's units, so at 1e30 it
+    stopped at `max_steps_reached`."""
+    _, _, sh = lambertian_capture
+    d, e = np.array([[0.3, 0.4, 0.87]]) / np.linalg.norm([0.3, 0.4, 0.87]), np.full((1, 3), 2.0)
+    brdf = solvers.TorranceSparrow(np.array([0.6, 0.45, 0.3]), np.full(3, 0.3), 1.6, 0.2)
+    gbs = [jaxsh.sphere_gbuffer(c, jnp.zeros(3), jnp.asarray(1.0)) for c in solvers.view_cameras(2, 16)]
+    light = lambda s: jaxsh.Lighting(sh * s, d, e * s)  # noqa: E731
+    obs = solvers.observations(gbs, [solvers.predict(brdf, light(1.0), g.normal, g.view, mask=g.mask) for g in gbs])
+    ref = solvers.fit_brdf(obs, light(1.0))
+    assert ref.status_name == "converged" and abs(float(ref.brdf.sigma) - 0.2) < 1e-6
+    for s in (1e-30, 1e30):
+        res = solvers.fit_brdf(eqx.tree_at(lambda o: o.values, obs, obs.values * s), light(s))
+        _ok(res, ref.status_name)
+        assert int(res.iterations) < 200
+        np.testing.assert_allclose(np.asarray(res.brdf.kd), np.asarray(ref.brdf.kd), rtol=1e-9)
+        np.testing.assert_allclose(float(res.brdf.sigma), float(ref.brdf.sigma), rtol=1e-9)
+
+
 def test_small_spd_solve_against_numpy(rng):
     # the Schur complements' elimination (`solve_spd_small`, plain XLA ops inside the searches), batched, in both
     # dtypes, against LAPACK; a singular system stays finite (the 16 eps diagonal jitter)
