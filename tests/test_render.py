@@ -343,3 +343,17 @@ def test_pixel_counts_in_one_bucket_share_the_compiled_programs(dtype):
     assert np.all(part[~mask[:4900]] == 0.0) and np.abs(part).max() > 0.1
     traced = np.asarray(jax.jit(render, static_argnums=0)(4900))  # under the caller's jit: no padding
     np.testing.assert_allclose(traced, part, rtol=10 * tol, atol=10 * tol)
+
+
+def test_directional_light_sh_against_scipy(rng):
+    """R&H sec. 5.2: delta sources have $L_{lm} = \\sum_j L_j Y_{lm}(\\omega_j)$, checked against scipy's harmonics
+    (`helpers.scipy_real_sh`, the convention of docs/conventions.md) at unnormalized directions, one and three
+    channels; an antipodal or mirrored direction would differ in every odd band."""
+    from tests.helpers import scipy_real_sh
+
+    d = rng.normal(size=(4, 3)) * rng.uniform(0.5, 3.0, size=(4, 1))
+    e = rng.uniform(0.2, 2.0, size=(4, 3))
+    want = scipy_real_sh(d, 6).T @ e
+    np.testing.assert_allclose(np.asarray(jaxsh.directional_light_sh(d, e, 6)), want, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(jaxsh.directional_light_sh(d, e[:, 0], 6))[:, 0], want[:, 0], rtol=1e-12,
+                               atol=1e-13)
