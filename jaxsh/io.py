@@ -698,7 +698,7 @@ def _bilinear_clamp(img, u, v):
 
 
 def read_envmap(
-    path, up: str = "+z", layout: str = "latlong", height: int | None = None, encoding: str | None = None
+    path, up: str | None = None, layout: str = "latlong", height: int | None = None, encoding: str | None = None
 ) -> np.ndarray:
     """Read an environment map and return it as a lat-long map in the library frame.
 
@@ -706,7 +706,10 @@ def read_envmap(
 
     - `path`: an image file (EXR, HDR, PFM, ...).
     - `up`: the file's up axis, `"+z"` (already the library convention) or
-      `"+y"` (converted by `Y_UP_TO_Z_UP`). Never guessed.
+      `"+y"` (converted by `Y_UP_TO_Z_UP`). Never guessed: None (the default)
+      means `"+z"` for a lat-long map and is an error for an angular map,
+      whose file frame is +y up (`"+z"` would take its axes, y up, as the
+      world's: a 90° turn for a +z-up world).
     - `layout`: `"latlong"` (equirectangular; for `"+y"` files: row 0 at +y,
       u = column/width with u = 0.5 looking along −z and u = 0.75 along +x)
       or `"angular"` (Debevec angular map, see
@@ -724,10 +727,14 @@ def read_envmap(
 
     **Returns:** float32 `(H, 2H, C)` (for `"+z"` lat-long files: the file as is).
     """
-    if up not in ("+z", "+y"):
+    if up not in (None, "+z", "+y"):
         raise ValueError(f'`up` must be "+z" or "+y", got {up!r}')
     if layout not in ("latlong", "angular"):
         raise ValueError(f'`layout` must be "latlong" or "angular", got {layout!r}')
+    if up is None and layout == "angular":
+        raise ValueError('`up` is required for an angular map: its file frame is +y up (x right, the centre looking '
+                         'along -z); up="+y" turns it into the library\'s +z-up frame, up="+z" takes its axes as they are')
+    up = "+z" if up is None else up
     path = os.fspath(path)
     img, info = _read_pixels(path)
     img = _decode(img, _check_encoding(path, encoding, info), info["alpha_channel"])
@@ -898,8 +905,13 @@ def _lighting(r: _Reader, v, where: str):
         return None
     r.obj(v, where, {"envmap", "up", "layout", "encoding", "rotation", "directional"})
     env = None if v.get("envmap") is None else r.file(v["envmap"], f"{where}.envmap", must_exist=True)
-    up = "+z" if v.get("up") is None else r.choice(v["up"], f"{where}.up", ("+z", "+y"))
+    up = None if v.get("up") is None else r.choice(v["up"], f"{where}.up", ("+z", "+y"))
     layout = "latlong" if v.get("layout") is None else r.choice(v["layout"], f"{where}.layout", ("latlong", "angular"))
+    if up is None and layout == "angular" and v.get("envmap") is not None:
+        raise r.err(f"{where}.up", 'is required for an angular map (`layout` "angular"): its file frame is +y up (x '
+                    'right, the centre looking along -z, docs/conventions.md); "+y" turns it into the library\'s +z-up '
+                    'frame, "+z" takes the file\'s axes as the world\'s')
+    up = "+z" if up is None else up
     enc = None if v.get("encoding") is None else r.choice(v["encoding"], f"{where}.encoding", ENCODINGS)
     if env is not None:
         info = r.image_info(env, f"{where}.envmap")

@@ -339,7 +339,7 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         result["undetermined"] = {k: bool(v) for k, v in res.stats["undetermined"].items()}
     if m["brdf"] is not None:
         result["lighting"]["std_errors"] = _json(res.std_errors)
-        result["lighting"]["supported_lmax"] = _json(res.supported_lmax)
+        result["lighting"]["supported_lmax"] = [int(x) for x in np.asarray(res.supported_lmax).reshape(-1)]  # ints (results.md)
     jio.write_json(out("result.json"), result)
     say(f"wrote {out_dir}/result.json, lighting.exr/.png and {len(gbs)} re-renders")
     return result

@@ -238,6 +238,8 @@ def test_fit_inverse_lighting_with_known_brdf(tmp_path):
     for c in range(3):
         assert np.corrcoef(rec[:9, c], truth[:9, c])[0, 1] > 0.99
     assert r["brdf"]["sigma"] == 0.2
+    sup = r["lighting"]["supported_lmax"]  # results.md: [int, int, int] (they were written as 12.0)
+    assert len(sup) == 3 and all(type(x) is int and 0 <= x <= 6 for x in sup)
 
 
 def test_fit_errors(tmp_path, capsys):

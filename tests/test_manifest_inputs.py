@@ -283,11 +283,37 @@ def test_nan_envmap_names_the_lighting_field(tmp_path, per_view):
                                                  ("angular", (8, 16), "must be square")])
 def test_envmap_shape_names_the_manifest_and_field(tmp_path, layout, shape, what):
     jio.write_image(tmp_path / "env.exr", np.ones(shape + (3,), np.float32))
-    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}], "lighting": {"envmap": "env.exr", "layout": layout}}
+    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}], "lighting": {"envmap": "env.exr", "layout": layout,
+                                                                         "up": "+y"}}
     p = _write(tmp_path, m)
     with pytest.raises(jio.ManifestError, match=rf"^{p}: `lighting\.envmap` is a {shape[1]}x{shape[0]} image .*{what}: "
                                                 rf".*env\.exr$"):
         jio.read_manifest(p)
+
+
+def test_an_angular_map_needs_a_declared_up_axis(tmp_path):
+    """An angular map's file frame is +y up; with `up` left at the lat-long default "+z" it was read turned by 90
+    degrees, silently (a render 37 % off the equivalent lat-long probe). Now `up` is required for it, in the manifest
+    (reader and schema) and in `read_envmap`; lat-long maps keep their default."""
+    jio.write_image(tmp_path / "env.exr", np.ones((16, 16, 3), np.float32))
+    m = {"geometry": SPHERE, "views": [{"camera": ORTHO}], "lighting": {"envmap": "env.exr", "layout": "angular"}}
+    p = _write(tmp_path, m)
+    with pytest.raises(jio.ManifestError, match=rf"^{p}: `lighting\.up` is required for an angular map"):
+        jio.read_manifest(p)
+    from jsonschema import ValidationError
+
+    with pytest.raises(ValidationError):  # the schema's if/then on `layout` requires `up`
+        _schema_ok(m)
+    with pytest.raises(ValueError, match="`up` is required for an angular map"):
+        jio.read_envmap(tmp_path / "env.exr", layout="angular")
+    for up in ("+y", "+z"):
+        m["lighting"]["up"] = up
+        _schema_ok(m)
+        assert jio.read_manifest(_write(tmp_path, m))["lighting"]["up"] == up
+        assert jio.read_envmap(tmp_path / "env.exr", up=up, layout="angular").shape == (8, 16, 3)
+    m["lighting"] = {"envmap": "env.exr"}  # lat-long: "+z" by default
+    jio.write_image(tmp_path / "env.exr", np.ones((8, 16, 3), np.float32))
+    assert jio.read_manifest(_write(tmp_path, m))["lighting"]["up"] == "+z"
 
 
 @pytest.mark.parametrize("per_view", [False, True])
