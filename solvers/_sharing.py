@@ -47,7 +47,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 import jaxsh
 
 from ._host_random import host_rng
-from ._results import Solution, Status, check_float, check_int as _check_int, finish, rms_pair, worst
+from ._results import Solution, Status, check_float, check_int as _check_int, finish, rms_pair, status_name, worst
 
 
 # --------------------------------------------------------------------------- input checks
@@ -240,8 +240,10 @@ class SharingFit(Solution):
       was given, `rel_rms <= tol`); `Status.tolerance_not_reached`
       (`rel_rms > tol`: the centre budget ran out before `tol`, or a
       smoothing spline's residual is above it); `Status.singular` (the solve of
-      eq. 10 gave a non-finite solution); `Status.nonfinite` (finite
-      solution, non-finite residual); `Status.no_signal` (all-zero values
+      eq. 10 gave a non-finite solution: the model is then the finite affine
+      fallback of degenerate data, see `fit_sharing`, and `rms`/`rel_rms`
+      are its residual); `Status.nonfinite` (finite solution, non-finite
+      residual: `rms`/`rel_rms` are `inf`, never NaN); `Status.no_signal` (all-zero values
       or weights); `Status.ill_conditioned` (degenerate data, see
       `fit_sharing`: too few samples, affinely degenerate or duplicate
       points — a fallback fit, never an exception).
@@ -254,6 +256,9 @@ class SharingFit(Solution):
     - `stats`: `n_centers` (K), `rss` ($\\sum\\varepsilon^2$), `data_ss`
       ($\\sum (w f)^2$), `count` ($N C$) — so fits can be combined with
       `rms_pair` — and `n_merged` (duplicate rows merged, 0 normally).
+      `rss`/`data_ss` are `inf` when they exceed the dtype's range (values
+      near its square root); `rms`/`rel_rms` are computed in scaled units
+      and stay finite.
 
     `fit(points)` evaluates `fit.model(points)`. `status_code` (0, 1, 2 for
     converged, tolerance not reached, singular/non-finite) is kept,
@@ -344,6 +349,20 @@ def fit_sharing(
     relative on small problems); the fitted model can be cast to float32 for
     evaluation.
 
+    **Scale.** The fit does not depend on the units of `values` and
+    `weights`: internally they are divided by powers of
+    two (exact in floating point) so their squares neither overflow nor
+    underflow, and the result is returned in the caller's units — `rel_rms`
+    is invariant, `rms` scales with `values` and `weights`, and the model
+    with `values` (float32 values of 1e±30, or float64 ones of 1e±200, fit
+    as the unscaled data do). When `scale` times the extent of the points is
+    so large or small that the kernel's squared distances would leave the
+    dtype's range (beyond $2^{\\pm e/4}$, $e$ the dtype's largest binary
+    exponent: about 1e±77 in float64, 1e±9.6 in float32), $M$ is divided
+    by a power of two $\\sigma$ and $\\rho$ by $\\sigma$ — the same function
+    ($\\Psi$ is homogeneous of degree 1 in $M$), returned as a model whose
+    `scale` is $M/\\sigma$ and whose kernel weights are $\\sigma\\lambda$.
+
     **Arguments:**
 
     - `points`: `(N, d)` sample points, $(u, v, w)$ or $(x, y, u, v, w)$
@@ -422,8 +441,10 @@ def fit_sharing(
       the rows merged away and `stats["merged_status"]` the status of the
       fit of the merged samples.
 
-    A singular system met inside the solve is reported as
-    `Status.singular`.
+    A singular system met inside the solve (non-finite kernel weights) is
+    reported as `Status.singular`; the result is then the finite affine
+    fallback above (one centre, kernel weight 0) with its own `rms`/`rel_rms`
+    — never a NaN model or residual.
 
     Comparable to `scipy.interpolate.RBFInterpolator(kernel="linear", degree=1)`
     (isotropic, all points as centres).
@@ -448,6 +469,75 @@ def fit_sharing(
     n_add = None if n_add is None else _check_int(n_add, "n_add")
     n_init = None if n_init is None else _check_int(n_init, "n_init", lo=d + 1)
     spread = check_float(spread, "spread")
+    # units ("Scale" in the docstring): values, weights and the metric M divided by powers of two (exact), so no
+    # square overflows or underflows; the fit is undone into the caller's units by `_rescaled`
+    nu = _pow2(np.max(np.abs(cv), initial=0.0))
+    om = 1.0 if cw is None else _pow2(np.max(cw, initial=0.0))
+    sig = _metric_unit(cp, cs)
+    if nu != 1.0:
+        cv = (cv.astype(np.float64) / nu).astype(cv.dtype)
+        values = jnp.asarray(cv)
+    if om != 1.0:
+        cw = (cw.astype(np.float64) / om).astype(cw.dtype)
+        weights = jnp.asarray(cw)
+    if sig != 1.0:
+        cs = (cs.astype(np.float64) / sig).astype(cs.dtype)
+        scale = jnp.asarray(cs)
+        smoothing = smoothing / sig  # (sig Psi' - rho I) lam = (Psi' - rho / sig I)(sig lam): the same function
+    fit = _fit_scaled(points, values, weights, scale, smoothing, cp, cv, cw, sm, single, n_centers, key, tol, n_init,
+                      n_add, spread, chunk)
+    return finish(_rescaled(fit, nu, om), throw)
+
+
+def _pow2(x) -> float:
+    """The power of two `2**e` with `x / 2**e` in [0.5, 1) (1.0 for 0 or a non-finite `x`)."""
+    x = float(x)
+    if not (np.isfinite(x) and x > 0):
+        return 1.0
+    return float(np.ldexp(1.0, int(np.frexp(x)[1])))
+
+
+def _metric_unit(p, s) -> float:
+    """1.0, or a power of two dividing `scale` when the scaled extent of the points is so large or small that the
+    squared distances of the kernel would overflow or underflow (beyond 2**±(maxexp/4) of the dtype)."""
+    p64 = p.astype(np.float64)
+    span = np.max(p64, axis=0) - np.min(p64, axis=0)
+    span = np.where(span > 0, span, np.maximum(np.max(np.abs(p64), axis=0), 1.0))
+    ext = float(np.max(s.astype(np.float64) * span))
+    lim = 2.0 ** (np.finfo(p.dtype).maxexp // 4)
+    if not (np.isfinite(ext) and ext > 0) or 1.0 / lim <= ext <= lim:
+        return 1.0
+    return _pow2(ext)
+
+
+def _rescaled(fit: SharingFit, nu: float, om: float) -> SharingFit:
+    """A fit of values / `nu` with weights / `om` in the caller's units: kernel weights and polynomial x `nu`,
+    `rms` x `nu om`, `rss`/`data_ss` x `(nu om)**2` (`rel_rms`, the history and the status are unchanged)."""
+    if nu == 1.0 and om == 1.0:
+        return fit
+
+    def times(a, *factors):  # in float64, then the dtype (an overflow is inf: the value is not representable)
+        a = np.asarray(a)
+        out = a.astype(np.float64)
+        with np.errstate(over="ignore", under="ignore"):
+            for f in factors:
+                out = out * np.float64(f)
+            return jnp.asarray(out.astype(a.dtype))
+
+    model = eqx.tree_at(lambda m: (m.weights, m.poly), fit.model,
+                        (times(fit.model.weights, nu), times(fit.model.poly, nu)))
+    stats = dict(fit.stats)
+    stats["rss"] = times(fit.stats["rss"], nu, om, nu, om)
+    stats["data_ss"] = times(fit.stats["data_ss"], nu, om, nu, om)
+    return SharingFit(model=model, center_index=fit.center_index, history_centers=fit.history_centers,
+                      history_rms=fit.history_rms, status=fit.status, iterations=fit.iterations,
+                      rms=times(fit.rms, nu, om), rel_rms=fit.rel_rms, stats=stats)
+
+
+def _fit_scaled(points, values, weights, scale, smoothing, cp, cv, cw, sm, single, n_centers, key, tol, n_init, n_add,
+                spread, chunk) -> SharingFit:
+    """`fit_sharing` on checked input in the units of `fit_sharing` (values and weights at most 1 in magnitude)."""
+    n, d = points.shape
     # NumPy on the concrete copies: each eager jnp op here compiled a program of its own (15-25 ms a first call)
     w = jnp.asarray(np.ones((n,), cp.dtype)) if weights is None else weights
     wv = cv if cw is None else cv * cw[:, None]
@@ -455,16 +545,15 @@ def fit_sharing(
     count = n * values.shape[1]
     # degenerate data (docstring): a fallback fit and a status, never an exception
     if n < d + 1:
-        return finish(_affine_fallback(points, values, w, scale, single, chunk, data_ss, count), throw)
+        return _affine_fallback(points, values, w, scale, single, chunk, data_ss, count)
     if n_centers > n:
         raise ValueError(f"`n_centers` = {n_centers} exceeds the number of samples N = {n}")
     _, first, inverse, counts = np.unique(cp, axis=0, return_index=True, return_inverse=True, return_counts=True)
     if np.any(counts > 1):
-        fit = _merged_fit(points, values, w, weights is not None, first, inverse.reshape(-1), n_centers, scale, smoothing,
-                          key, tol, n_init, n_add, spread, chunk, single, data_ss, count)
-        return finish(fit, throw)
+        return _merged_fit(points, values, w, weights is not None, first, inverse.reshape(-1), n_centers, scale,
+                           smoothing, key, tol, n_init, n_add, spread, chunk, single, data_ss, count)
     if _affine_rank(cp) < d:
-        return finish(_affine_fallback(points, values, w, scale, single, chunk, data_ss, count), throw)
+        return _affine_fallback(points, values, w, scale, single, chunk, data_ss, count)
 
     if n_centers == n:
         model = jaxsh.rbf_fit(points, values[:, 0] if single else values, scale, smoothing, chunk=chunk)
@@ -507,8 +596,10 @@ def fit_sharing(
             lam, poly = lam[:, 0], poly[:, 0]
         idx = jnp.asarray(idx_np)
         model = jaxsh.RBFModel(jnp.asarray(cp[idx_np]), jnp.asarray(lam), jnp.asarray(poly), scale, chunk=chunk)
-    fit = _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solved, reached)
-    return finish(fit, throw)
+    if not solved:
+        # the solve of eq. 10 failed (non-finite weights): the finite affine fallback, reported as `singular`
+        return _affine_fallback(points, values, w, scale, single, chunk, data_ss, count, failed=True)
+    return _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solved, reached)
 
 
 @jaxsh.jit
@@ -521,10 +612,13 @@ def _sharing_fit(model, idx, hist_c, hist_rel, rounds, rss, data_ss, count, solv
                  n_merged=0) -> SharingFit:
     """The `SharingFit` and its status (first match: singular, nonfinite, no_signal, ill_conditioned, tolerance)."""
     rss = jnp.asarray(rss)
+    finite_rss = bool(np.isfinite(float(rss)))
+    if not finite_rss:
+        rss = jnp.asarray(np.inf, rss.dtype)  # a non-finite residual is unbounded: rms and rel_rms inf, never NaN
     rms, rel = _rms_pair(rss, jnp.asarray(data_ss, rss.dtype), jnp.asarray(count, rss.dtype))
     if not solved:
         status = Status.singular
-    elif not (np.isfinite(float(rss)) and np.isfinite(float(rel))):
+    elif not (finite_rss and np.isfinite(float(rel))):
         status = Status.nonfinite
     elif not float(data_ss) > 0:
         status = Status.no_signal  # all-zero values (black images) or weights: the zero fit, no information
@@ -546,8 +640,9 @@ def _weighted_rss(model, points, values, w):
     return jnp.sum(r * r)
 
 
-def _affine_fallback(points, values, w, scale, single, chunk, data_ss, count) -> SharingFit:
-    """Minimum-norm weighted LSQ $c_0 + c\\cdot\\vec q$ (one centre, zero kernel weight): eq. 10 is undetermined."""
+def _affine_fallback(points, values, w, scale, single, chunk, data_ss, count, failed=False) -> SharingFit:
+    """Minimum-norm weighted LSQ $c_0 + c\\cdot\\vec q$ (one centre, zero kernel weight): eq. 10 is undetermined
+    (status `ill_conditioned`), or its solve failed (`failed`: status `singular`)."""
     p, v, wn = np.asarray(points), np.asarray(values), np.asarray(w)
     mean = p.mean(axis=0)
     a = np.concatenate([np.ones((p.shape[0], 1)), p - mean], axis=1) * wn[:, None]
@@ -560,7 +655,7 @@ def _affine_fallback(points, values, w, scale, single, chunk, data_ss, count) ->
     rss = _weighted_rss(model, points, values, w)
     rel = rms_pair(rss, data_ss, count)[1]
     return _sharing_fit(model, np.zeros(1, np.int32), [1], rel[None], 0, rss, data_ss, count,
-                        _finite(model.poly), True, degenerate=True)
+                        _finite(model.poly) and not failed, True, degenerate=True)
 
 
 def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, smoothing, key, tol, n_init, n_add, spread, chunk,
@@ -580,8 +675,9 @@ def _merged_fit(points, values, w, weighted, first, inverse, n_centers, scale, s
                       n_init=None if n_init is None else max(min(n_init, groups), d1), n_add=n_add, spread=spread,
                       chunk=chunk)
     rss = _weighted_rss(sub.model, points, values, w)
+    solved = _finite(sub.model.weights, sub.model.poly) and status_name(sub.status) != "singular"
     fit = _sharing_fit(sub.model, first[np.asarray(sub.center_index)], sub.history_centers, sub.history_rms,
-                       sub.iterations, rss, data_ss, count, _finite(sub.model.weights, sub.model.poly), True,
+                       sub.iterations, rss, data_ss, count, solved, True,
                        degenerate=True, n_merged=points.shape[0] - groups)
     fit.stats["merged_status"] = sub.status  # the merged samples' own fit (e.g. tolerance_not_reached)
     return fit
@@ -844,13 +940,55 @@ def _eval_rows_jit(fn, args, sel, *rows):
         lambda v: jnp.zeros((total,) + v.shape[1:], v.dtype).at[sel].set(v, mode="drop", indices_are_sorted=True), vals)
 
 
-def _combined(fits):
-    """`(status, iterations, rms, rel_rms)` of several `SharingFit`s: `worst` status, summed rounds, pooled RMS."""
-    status = worst(*(f.status for f in fits))
-    iterations = sum(jnp.asarray(f.iterations) for f in fits)
-    rms, rel = rms_pair(sum(f.stats["rss"] for f in fits), sum(f.stats["data_ss"] for f in fits),
-                        sum(f.stats["count"] for f in fits))
-    return status, iterations, rms, rel
+def _component_status(statuses, signal=None) -> Status:
+    """The status of a model of several components (Zickler eqs. 14, 15) from the statuses of their fits.
+
+    The `worst` of them, except that a component whose samples are all zero (`no_signal`: its fit is the exact
+    zero function, a valid answer: a matte object has no specular part, a metal no diffuse one) counts as
+    `converged`; the model is `no_signal` only when every component is all zero (and `signal`, the evidence of
+    a component without a fit such as eq. 15's albedo map, is False).
+    """
+    zero = [st == Status.no_signal for st in statuses]
+    none = zero[0]
+    for z in zero[1:]:
+        none = jnp.logical_and(none, z)
+    if signal is not None:
+        none = jnp.logical_and(none, jnp.logical_not(jnp.asarray(signal)))
+    return Status.where(none, Status.no_signal, worst(*(Status.where(z, Status.converged, st)
+                                                        for z, st in zip(zero, statuses))))
+
+
+def _pooled_residual(fits):
+    """`(rms, rel_rms, rss, data_ss, count)` pooled over the fits' own samples (each in its fit's units)."""
+    rss, data_ss = sum(f.stats["rss"] for f in fits), sum(f.stats["data_ss"] for f in fits)
+    count = sum(f.stats["count"] for f in fits)
+    return (*_rms_pair(rss, data_ss, jnp.asarray(count, rss.dtype)), rss, data_ss, count)
+
+
+def _radiance_residual(pairs):
+    """`(rms, rel_rms, rss, data_ss, count)` of image samples against the model's radiance, in the images' units.
+
+    `pairs`: `(observed, predicted)` arrays (NumPy), one pair per component image (diffuse, specular). Computed
+    in float64 in the unit of a power of two of the largest observed value (no square overflows), so `rel_rms` is
+    invariant and `rms` equivariant under a change of the images' units.
+    """
+    obs = [np.asarray(o, np.float64) for o, _ in pairs]
+    unit = _pow2(max(float(np.max(np.abs(o), initial=0.0)) for o in obs))
+    rss_n = sum(float(np.sum(((np.asarray(o, np.float64) - np.asarray(m, np.float64)) / unit) ** 2)) for o, m in pairs)
+    ss_n = sum(float(np.sum((o / unit) ** 2)) for o in obs)
+    count = sum(o.size for o in obs)
+    rss_n = rss_n if np.isfinite(rss_n) else np.inf
+    rms = unit * np.sqrt(rss_n / count) if count else 0.0
+    rel = np.sqrt(rss_n / ss_n) if ss_n > 0 else (np.inf if rss_n > 0 else 0.0)
+    with np.errstate(over="ignore"):
+        rss, data_ss = rss_n * unit * unit, ss_n * unit * unit
+    return tuple(jnp.asarray(x) for x in (rms, rel, rss, data_ss)) + (count,)
+
+
+def _residual_fields(residual):
+    rms, rel, rss, data_ss, count = residual
+    return jnp.asarray(rms), jnp.asarray(rel), {"rss": jnp.asarray(rss), "data_ss": jnp.asarray(data_ss),
+                                                "count": jnp.asarray(count)}
 
 
 class RBFReflectance(Solution):
@@ -1029,11 +1167,28 @@ class DichromaticReflectance(Solution):
     (`SharingFit`, 3 channels $d_k$, one set of centres); `specular`
     (`SharingFit`, scalar $g$).
 
-    Result contract (`Solution`), from the two fits: `status` the `worst`
-    of theirs, `iterations` their greedy rounds summed, `rms`/`rel_rms`
-    pooled over the samples and channels of both fits, `stats`
-    `{"diffuse": ..., "specular": ...}` (each fit's stats); `estimate` is
-    the model itself.
+    Result contract (`Solution`), from the two fits:
+
+    - `status`: the `worst` of theirs, except that a fit whose samples are
+      all zero (`no_signal`: a matte object's specular part, a metal's
+      diffuse part) counts as `converged` — its fit, the zero function, is
+      exact. The model is `no_signal` only when both are (all-zero images).
+    - `iterations`: their greedy rounds summed.
+    - `rms`/`rel_rms`: from `fit_dichromatic`, in the **units of the
+      images** (radiance): the RMS over the samples (lit pixels, images and
+      channels) of both component images of $I_{d,k} - s_k E\\cos\\theta_i\\,a_k d_k(\\vec q)$
+      and $I_{s,k} - s_k E\\cos\\theta_i\\,g(\\vec q)$ (the fitted $d_k$, $g$
+      before the clamp of `render`); `rel_rms` is it over the RMS of those
+      image samples. So `rel_rms` does not change, and `rms` scales, when
+      the images are scaled. The specular residual includes the part of
+      $I_s$ not in the source colour. Built by hand from two fits
+      (`DichromaticReflectance(albedo, diffuse, specular)`, no images),
+      they pool the fits' own weighted residuals, each in its own sample
+      units (`diffuse.rel_rms`, `specular.rel_rms` are the fits' own).
+    - `stats`: `{"diffuse": ..., "specular": ...}` (each fit's stats) and
+      `rss`, `data_ss`, `count` of `rms`/`rel_rms` (as in `SharingFit`).
+
+    `estimate` is the model itself.
     """
 
     albedo: Array
@@ -1045,10 +1200,14 @@ class DichromaticReflectance(Solution):
     rel_rms: Float[Array, ""]
     stats: dict
 
-    def __init__(self, albedo, diffuse: SharingFit, specular: SharingFit):
+    def __init__(self, albedo, diffuse: SharingFit, specular: SharingFit, residual=None):
+        """`residual`: `(rms, rel_rms, rss, data_ss, count)` in the images' units (`fit_dichromatic`), or `None`."""
         self.albedo, self.diffuse, self.specular = albedo, diffuse, specular
-        self.status, self.iterations, self.rms, self.rel_rms = _combined((diffuse, specular))
-        self.stats = {"diffuse": diffuse.stats, "specular": specular.stats}
+        self.status = _component_status((diffuse.status, specular.status))
+        self.iterations = jnp.asarray(diffuse.iterations) + jnp.asarray(specular.iterations)
+        residual = _pooled_residual((diffuse, specular)) if residual is None else residual
+        self.rms, self.rel_rms, sums = _residual_fields(residual)
+        self.stats = {"diffuse": diffuse.stats, "specular": specular.stats, **sums}
 
     @property
     def estimate(self) -> "DichromaticReflectance":
@@ -1084,10 +1243,17 @@ def fit_dichromatic(
     **Arguments:** `diffuse_images`, `specular_images` `(L, H, W, 3)`;
     `colors` `(L, 3)` unit RGB source colours $\\hat s$; `normal`, `view`,
     `lights`, `xy`, `irradiance`, `mask` as in `reflectance_samples`.
+    `irradiance` is a scalar or `(L,)`: one $E$ per light, finite and
+    $> 0$ (the colour of each source is `colors`).
     Pixels never lit keep the median albedo of the others. `throw=True`
-    raises `SolveError` unless both fits converged (`fit_homogeneous`); a
-    `tol` keyword applies to both fits, and the status is the worse of
-    theirs (`tolerance_not_reached` when either residual is above `tol`).
+    raises `SolveError` unless the status is `converged`; a `tol` keyword
+    applies to both fits, and the status is the worse of theirs
+    (`tolerance_not_reached` when either residual is above `tol`), an
+    all-zero component (a matte object: `specular_images` all zero)
+    counting as converged (`DichromaticReflectance`).
+
+    **Returns:** a `DichromaticReflectance`; its `rms`/`rel_rms` are in the
+    units of the images (radiance), over the lit samples of both images.
     """
     m_xy, m_w = check_float(m_xy, "m_xy", strict=True), check_float(m_w, "m_w", strict=True)
     dimg = np.asarray(diffuse_images, np.float64)
@@ -1103,6 +1269,8 @@ def fit_dichromatic(
     if not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"`colors` must be finite and > 0 (the source colours divide the images), got {s.tolist()}")
     e = _per_light(irradiance, nl, 1, "irradiance")[:, 0]
+    if not np.all(np.isfinite(e)) or np.any(e <= 0):
+        raise ValueError(f"`irradiance` must be finite and > 0, got {e.tolist()}")
     eff = (s * e[:, None])[:, None, None, :]
     ds = reflectance_samples(dimg / eff, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
     # median albedo map (sec. 8.1)
@@ -1125,7 +1293,14 @@ def fit_dichromatic(
     ss = reflectance_samples(spec, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
     gfit = fit_sharing(ss.points, ss.values[:, 0], n_centers_specular, scale=sc, smoothing=smoothing, key=key,
                        weights=ss.cos_i, **kwargs)
-    return finish(DichromaticReflectance(jnp.asarray(albedo), dfit, gfit), throw)
+    # rms / rel_rms in the images' units: I - s_k E cos(theta_i) (a_k d_k or g) at the samples of each image
+    es = s * e[:, None]  # (L, 3)
+    di, dp, si, sp = (np.asarray(a) for a in (ds.image, ds.pixel, ss.image, ss.pixel))
+    d_pred = es[di] * np.asarray(ds.cos_i, np.float64)[:, None] * a_s * np.asarray(dfit(ds.points), np.float64)
+    g_pred = es[si] * (np.asarray(ss.cos_i, np.float64) * np.asarray(gfit(ss.points), np.float64))[:, None]
+    residual = _radiance_residual([(dimg.reshape(nl, h * w, 3)[di, dp], d_pred),
+                                   (simg.reshape(nl, h * w, 3)[si, sp], g_pred)])
+    return finish(DichromaticReflectance(jnp.asarray(albedo), dfit, gfit, residual), throw)
 
 
 class OneImageReflectance(Solution):
@@ -1134,8 +1309,22 @@ class OneImageReflectance(Solution):
     The one-image special case: all samples share $w$, so the specular
     function drops it; the diffuse part is Lambertian with the albedo map
     `albedo` `(H, W, 3)` read off the image. `specular` is the 4-D
-    `SharingFit`; the result contract (`Solution`: `status`, `iterations`,
-    `rms`, `rel_rms`, `stats`) is its; `estimate` is the model itself.
+    `SharingFit`. Result contract (`Solution`):
+
+    - `status`: the specular fit's, except that an all-zero specular image
+      (`no_signal`: a matte object) with a non-zero albedo map is
+      `converged` (its fit, the zero function, is exact); `no_signal` only
+      when the albedo map is zero too (a black image).
+    - `iterations`: the specular fit's greedy rounds.
+    - `rms`/`rel_rms`: from `fit_one_image`, in the **units of the image**
+      (radiance), over the lit samples of both component images, as in
+      `DichromaticReflectance` ($I_{d,k} - s_k E\\cos\\theta_i\\,a_k$ and
+      $I_{s,k} - s_k E\\cos\\theta_i\\,g$). Built by hand
+      (`OneImageReflectance(albedo, specular)`), the specular fit's own.
+    - `stats`: `{"specular": ...}` (the fit's stats) and `rss`, `data_ss`,
+      `count` of `rms`/`rel_rms`.
+
+    `estimate` is the model itself.
     """
 
     albedo: Array
@@ -1146,11 +1335,18 @@ class OneImageReflectance(Solution):
     rel_rms: Float[Array, ""]
     stats: dict
 
-    def __init__(self, albedo, specular: SharingFit):
+    def __init__(self, albedo, specular: SharingFit, residual=None):
+        """`residual`: `(rms, rel_rms, rss, data_ss, count)` in the image's units (`fit_one_image`), or `None`."""
         self.albedo, self.specular = albedo, specular
-        self.status, self.iterations, self.rms, self.rel_rms = (
-            specular.status, specular.iterations, specular.rms, specular.rel_rms)
-        self.stats = specular.stats
+        a = _concrete(albedo)
+        signal = jnp.any(jnp.asarray(albedo) != 0) if a is None else bool(np.any(a != 0))
+        self.status = _component_status((specular.status,), signal)
+        self.iterations = specular.iterations
+        if residual is None:
+            residual = (specular.rms, specular.rel_rms, specular.stats["rss"], specular.stats["data_ss"],
+                        specular.stats["count"])
+        self.rms, self.rel_rms, sums = _residual_fields(residual)
+        self.stats = {"specular": specular.stats, **sums}
 
     @property
     def estimate(self) -> "OneImageReflectance":
@@ -1180,7 +1376,14 @@ def fit_one_image(
     $\\sum_k I_{s,k}s_k/(E\\cos\\theta_i\\sum_k s_k^2)$.
 
     **Arguments:** `diffuse_image`, `specular_image` `(H, W, 3)`; `color`
-    `(3,)`; `light` `(3,)`; the rest (and `throw`) as in `fit_dichromatic`.
+    `(3,)`; `light` `(3,)`; `irradiance` a scalar (or a one-element array,
+    `(1,)`: the one light's $E$), finite and $> 0$ — the colour is `color`;
+    the rest (and `throw`) as in `fit_dichromatic`. A bad shape is a
+    `ValueError` naming the argument.
+
+    **Returns:** a `OneImageReflectance`: `status` `converged` for a matte
+    object (all-zero `specular_image`), `no_signal` only for a black image;
+    `rms`/`rel_rms` in the image's units (radiance).
     """
     m_xy = check_float(m_xy, "m_xy", strict=True)
     dimg = np.asarray(diffuse_image, np.float64)
@@ -1193,10 +1396,17 @@ def fit_one_image(
         raise ValueError(f"`color` must have shape (3,), got {s.shape}")
     if not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"`color` must be finite and > 0 (the source colour divides the image), got {s.tolist()}")
-    e = float(irradiance)
+    e_arr = np.asarray(irradiance, np.float64)
+    if e_arr.size != 1 or e_arr.ndim > 1:
+        raise ValueError(
+            f"`irradiance` must be a scalar or (1,) (one light; its colour is `color`), got shape {e_arr.shape}")
+    e = float(e_arr.reshape(()))
     if not (np.isfinite(e) and e > 0):
         raise ValueError(f"`irradiance` must be finite and > 0, got {e}")
-    lt = np.asarray(light, np.float64).reshape(1, 3)
+    lt = np.asarray(light, np.float64)
+    if lt.shape != (3,):
+        raise ValueError(f"`light` must have shape (3,) (towards the light), got {lt.shape}")
+    lt = lt.reshape(1, 3)
     ds = reflectance_samples(dimg[None] / (s * e), normal, view, lt, 1.0, mask, xy, min_cos=min_cos)
     albedo = np.full((h * w, 3), np.nan)
     albedo[np.asarray(ds.pixel)] = np.asarray(ds.values)
@@ -1206,4 +1416,9 @@ def fit_one_image(
     pts = ss.points[:, :4]
     gfit = fit_sharing(pts, ss.values[:, 0], n_centers, scale=jnp.asarray([m_xy, m_xy, 1.0, 1.0]),
                        smoothing=smoothing, key=key, weights=ss.cos_i, **kwargs)
-    return finish(OneImageReflectance(jnp.asarray(albedo), gfit), throw)
+    # rms / rel_rms in the image's units: I - s_k E cos(theta_i) (a_k or g) at the samples
+    dp, sp = np.asarray(ds.pixel), np.asarray(ss.pixel)
+    d_pred = (s * e) * np.asarray(ds.cos_i, np.float64)[:, None] * albedo.reshape(-1, 3)[dp]
+    g_pred = (s * e) * (np.asarray(ss.cos_i, np.float64) * np.asarray(gfit(pts), np.float64))[:, None]
+    residual = _radiance_residual([(dimg.reshape(h * w, 3)[dp], d_pred), (simg.reshape(h * w, 3)[sp], g_pred)])
+    return finish(OneImageReflectance(jnp.asarray(albedo), gfit, residual), throw)
