@@ -46,6 +46,15 @@ milliseconds but took 0.6-1.0 s each to compile (`_golden_batch`,
 optimizations (`jaxsh.jit(optimize=False)`): 1.9 s less compilation, 60-100 ms
 more run time per call (docs/performance.md, "Eleventh round").
 
+**$\\mu$ on the joint model (`refine_mu`, the default; not in the paper).** Stage 1's objective models the
+lighting as $l \\le l^*$ SH only. A bright compact source (a sun) is far from that model, and $\\mu$ absorbs
+part of the misfit: on noise-free images of the refinement's own model (smooth lighting plus a sun), $\\mu$ 1.49
+for 1.6 and $K_s$ 5-7 % low, with a standard error 140 times smaller than the error
+(`tests/test_inverse.py::test_factorize_searches_mu_again_on_the_joint_model`). So once the source is found,
+$\\mu$ is searched again with the refinement's model (slow SH plus the source as a delta, $(K_s, \\sigma)$
+re-searched at each value: `_joint_mu_search`), and stage 1, eq. 26 and the refinement are redone at that
+$\\mu$; its standard error comes from that profile's curvature.
+
 **Roughness (eq. 26).** $\\sigma$ comes from the recovered (filtered)
 lighting with $L_{cen} \\approx L_{tot}/(4\\pi\\sigma^2)$, evaluated with the
 band limit taken into account: the brightest compact region is found
@@ -138,7 +147,7 @@ class FactorizationResult(Solution):
       refinement, slow SH (unfiltered, to `lmax`) plus the source as a fast
       delta; without it, the filtered SH lighting of eq. 25.
     - `filtered_sh`: `(n_coeffs, C)` the eq.-25 (filtered) lighting of the
-      first stage, the input of eq. 26.
+      first stage (at the final $\\mu$ with `refine_mu`), the input of eq. 26.
     - `source`: `SourceEstimate` (or None when `find_sigma=False`).
     - `std_errors`: `TorranceSparrow` (from the Jacobian of the profiled
       residual of the final stage; `kd` errors equal `ks` errors).
@@ -146,8 +155,9 @@ class FactorizationResult(Solution):
       (`max_steps_reached` when the σ grids stop wider than the tolerance),
       `nonfinite` and `no_signal`; without it,
       the status of the eq.-25 solve of stage 1 (as `inverse_lighting`).
-    - `iterations`: the $\\mu$ candidates evaluated (23 with `fresnel`) plus
-      the $\\sigma$ values the refinement evaluated.
+    - `iterations`: the $\\mu$ candidates evaluated (23 with `fresnel`, 32
+      with `refine_mu`: the joint model's 9) plus the $\\sigma$ values the
+      final refinement evaluated.
     - `rms`, `rel_rms` (never NaN) of the final stage, on all pixels.
     - `stats`: `num_mu_candidates`, `num_sigma_candidates` (the refinement's
       $\\sigma$ values, 16 per grid; 0 without the refinement), `num_steps_golden` (the $K_s$ searches of the final
@@ -531,6 +541,7 @@ def factorize(
     find_sigma: bool = True,
     region: tuple | None = None,
     refine: bool = True,
+    refine_mu: bool = True,
     search_pixels: int | None = 40000,
     key: jax.Array | None = None,
     max_steps: int = 200,
@@ -566,6 +577,21 @@ def factorize(
       angular_radius)`), eq. 26.
     - `refine`: joint refinement of $(K_s, \\sigma)$ and the lighting, with the
       lighting modelled as slow SH + the found source (needs `find_sigma`).
+    - `refine_mu`: with `refine` and Fresnel, $\\mu$ is searched again on the
+      joint model (`_joint_mu_search`: 9 values of $\\log(\\mu - 1)$ within
+      0.75 of the stage-1 value, $(K_s, \\sigma)$ re-searched at each, and a
+      parabola), then the first stage, the source and the refinement are
+      redone at the new $\\mu$, and $\\mu$'s standard error comes from that
+      profile. Stage 1 models the lighting as $l \\le l^*$ SH only, and a
+      bright compact source (a sun) biases its $\\mu$: on
+      `bench_inverse.py`'s capture (3 × 256², rendered by the reference
+      renderer, 1 % noise) the errors of $K_s/(K_d+K_s)$, $\\mu$, $\\sigma$
+      are 7.5 %, 9.5 %, 2.5 % without it and about 1 %, 0.5 %, 0.1 % with it;
+      on noise-free images of the fitted model under a probe and a sun,
+      stage 1 gives $\\mu$ 1.36 for 1.6 and $K_s$ 40 % low. It costs 9
+      evaluations of the refinement's search on the subset (`docs/performance.md`).
+      `False`: stage 1's $\\mu$ (R&H's algorithm). Only on the default path
+      (`"sh"`, a search subset whose `MirrorTable` fits); otherwise stage 1's $\\mu$.
     - `search_pixels`: the searches use a random subset of this many pixels
       (None: all); the final solve uses all pixels. `key`: PRNG key (default
       `jax.random.PRNGKey(0)`); the subset is NumPy's
@@ -637,7 +663,7 @@ def factorize(
             )
         up = jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if a.dtype == obs.values.dtype else a, obs)
         res = factorize.__wrapped__(up, lmax, fresnel=fresnel, find_sigma=find_sigma, region=region, refine=refine,
-                                    search_pixels=search_pixels, key=key, max_steps=max_steps, rtol=rtol, atol=atol,
+                                    refine_mu=refine_mu, search_pixels=search_pixels, key=key, max_steps=max_steps, rtol=rtol, atol=atol,
                                     chunk=chunk, lighting_method=lighting_method, dual_height=dual_height)
         down = obs.values.dtype
         return finish(jax.tree_util.tree_map(lambda a: a.astype(down) if a.dtype == jnp.float64 else a, res), throw)
@@ -745,6 +771,28 @@ def factorize(
     if not refine:
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
+    if refine_mu and mu is not None and tab is not None and blocks[1] is not None:
+        # mu again, on the joint model (`_joint_mu_search`; log(sigma) to a coarser tolerance inside it, the final
+        # refinement keeps rtol, atol), then the first stage, the source and the blocks at the new mu
+        jt1 = _joint_from_table(sub, tab, blocks[1], mu, lmax)
+        column = _source_column(jt1, sub.fast_visibility, mu, ks, src.direction, src.sigma, lmax)
+        tol_mu = max(rtol, atol, _MU_JOINT_SIGMA_TOL)
+        t2, c2, n_mu = _joint_mu_search(sub, tab, lmax, best, ks, src.direction, src.sigma, int(max_steps), tol_mu,
+                                        tol_mu, rcond, column)
+        curv_rss = None if c2 is None else c2 * n_pos / sub.n_samples  # the profile's curvature, to all pixels
+        its1 += n_mu
+        stats["num_mu_candidates"] = jax.device_put(its1)
+        mu = jax.device_put(np.asarray(1.0 + np.exp(t2), dt))
+        mu9 = jax.device_put(np.full((9,), np.asarray(mu)))
+        if sub is obs:
+            blocks = (_mu_blocks(tab, mu9, lmax, rcond),) * 2
+        else:
+            bl_obs, rows_obs = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True)
+            blocks = (bl_obs, _mu_blocks(tab, mu9, lmax, rcond))
+        _, ks, golden_steps = _golden_batch(blocks[0])
+        res1, src = _lighting_and_source(blocks[0], ks, lmax, rcond, region_c, True)
+        filtered = res1.coeffs
+        stats["num_steps_golden"] = golden_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
                   rows_obs)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted = out
@@ -1030,7 +1078,7 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
-    ks, sigma, status, its = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
+    ks, sigma, status, its, _ = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
     if sub is obs:
         jt = jt_sub
     elif rows_obs is not None and bl_obs is not None:
@@ -1038,6 +1086,48 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     else:
         jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
     return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples)
+
+
+def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column):
+    """$t = \\log(\\mu - 1)$ that minimizes the joint model's profiled RSS on the subset (its $(K_s, \\sigma)$
+    re-searched at each $\\mu$ by `_refine_search`): 9 values evenly spaced on $[t_1 - w, t_1 + w]$
+    (`_MU_JOINT_HALF_WIDTH`, within stage 1's range) around the stage-1 value $t_1$, their blocks in one batch
+    (`_mu_blocks`), then the parabola through the best and its neighbours. Stage 1 chooses $\\mu$ with the
+    lighting as $l \\le l^*$ SH only; a bright compact source (a sun) is far from that model, and $\\mu$ then
+    absorbs the misfit (measured: $\\mu$ 1.36 for 1.6 on noise-free images, $K_s$ 40 % low, status converged).
+    The joint model holds the source as a delta, so its $\\mu$ is not biased that way. Reuses the compiled
+    programs of stage 1 and the refinement (`_mu_blocks`, `_joint_from_table`, `_refine_search`).
+    Returns `(t, the profile's curvature in t on the subset or None, evaluations)`."""
+    dt = tab.b.dtype
+    lo = max(t1 - _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[0])
+    hi = min(t1 + _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[1])
+    ts = np.linspace(lo, hi, 9)
+    bl = _mu_blocks(tab, jax.device_put((1.0 + np.exp(ts)).astype(dt)), lmax, rcond)
+    vals = []
+    for k, t in enumerate(ts):
+        mu = jax.device_put(np.asarray(1.0 + np.exp(t), dt))
+        jt = _joint_from_table(sub, tab, bl, mu, lmax, jax.device_put(np.int32(k)))
+        if column is not None:
+            jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
+        vals.append(float(_refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)[4]))
+    vals = np.where(np.isfinite(vals), vals, np.inf)
+    if not np.any(np.isfinite(vals)):
+        return t1, None, len(ts)
+    k = int(np.argmin(vals))
+    if not 0 < k < len(ts) - 1 or not np.all(np.isfinite(vals[k - 1 : k + 2])):
+        return ts[k], None, len(ts)  # at the bracket's edge: no curvature (mu's standard error is then inf)
+    h = ts[1] - ts[0]
+    y0, y1, y2 = vals[k - 1 : k + 2]
+    c2 = (y0 - 2 * y1 + y2) / h**2
+    if c2 <= 0:
+        return ts[k], None, len(ts)
+    return ts[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h)), c2, len(ts)
+
+
+_MU_T_RANGE = (float(np.log(0.05)), float(np.log(2.5)))  # stage 1's range of log(mu - 1)
+_MU_JOINT_HALF_WIDTH = 0.75  # the joint search's bracket around the stage-1 log(mu - 1): 1.5 first-round steps
+# (9 values 0.19 apart; mu's standard error on the benchmark capture is 0.15 at mu = 1.6: 0.25 in log(mu - 1))
+_MU_JOINT_SIGMA_TOL = 1e-4  # log(sigma)'s tolerance inside the joint mu search
 
 
 def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
@@ -1062,8 +1152,11 @@ def _column_rss(jt, fvis, mu, ks, d, sigma, lmax):
 
 
 @jaxsh.jit
-def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int) -> _Joint:
-    """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH)."""
+def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k=None) -> _Joint:
+    """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH);
+    with batched blocks `bl` (`_mu_blocks`), the first, or the `k`-th (a traced index: one program for all)."""
+    if k is not None:
+        bl = jax.tree_util.tree_map(lambda a: a[k], bl)
     npx = o.n_samples  # the table's first columns (its last ones are quadrature nodes)
     f = tab.s_scale[:npx] if mu is None else tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu)
     rows = jnp.concatenate([tab.d[:npx].T, tab.y2[: (lmax + 1) ** 2, :npx] * f[None, :]], 0)
@@ -1169,7 +1262,7 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     Each zoom evaluates its values in one batch (one pass over the rows for all of them, `vmap`); the loop
     holds one copy of the objective. Where no value is finite (data without signal) the search stops after
     the first grid and returns the stage-1 `ks0`, `sigma0` (clipped to the ranges) with the status `nonfinite`.
-    Returns `ks (C,)`, `sigma`, the status and the values evaluated."""
+    Returns `ks (C,)`, `sigma`, the status, the values evaluated and the profiled RSS reached."""
     dt = jt.b.dtype
     c = jt.b.shape[1]
     sp = _source_parts(jt, mu, d)
@@ -1203,7 +1296,7 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     z = _Zoom(jnp.where(found, z.t, t_fb), z.val, jnp.where(found, z.ks, ks_fb), z.h, z.n)
     status = Status.where(jnp.isfinite(z.val), Status.where(z.h <= tol(z), Status.converged, Status.max_steps_reached),
                           Status.nonfinite)
-    return z.ks, jnp.exp(z.t), status, z.n * _SIGMA_POINTS
+    return z.ks, jnp.exp(z.t), status, z.n * _SIGMA_POINTS, z.val
 
 
 _FD_STEP = 1e-3  # relative step of the central differences in `_profiled_hessian`
