@@ -772,13 +772,12 @@ def factorize(
         brdf = TorranceSparrow.unchecked(1.0 - ks, ks, mu, src.sigma)
         return result(brdf, res1.lighting, src, std_inf, res1.status, jnp.asarray(its1), res1.rms, res1.rel_rms, stats)
     if refine_mu and mu is not None and tab is not None and blocks[1] is not None:
-        # mu again, on the joint model (`_joint_mu_search`; log(sigma) to a coarser tolerance inside it, the final
-        # refinement keeps rtol, atol), then the first stage, the source and the blocks at the new mu
-        jt1 = _joint_from_table(sub, tab, blocks[1], mu, lmax)
+        # mu again, on the joint model (`_joint_mu_search`; log(sigma) by at most `_MU_JOINT_SIGMA_GRIDS` grids inside
+        # it, the final refinement keeps rtol, atol), then the first stage, the source and the blocks at the new mu
+        jt1 = _joint_from_table(sub, tab, blocks[1], mu, lmax, _K0())
         column = _source_column(jt1, sub.fast_visibility, mu, ks, src.direction, src.sigma, lmax)
-        tol_mu = max(rtol, atol, _MU_JOINT_SIGMA_TOL)
-        t2, c2, n_mu = _joint_mu_search(sub, tab, lmax, best, ks, src.direction, src.sigma, int(max_steps), tol_mu,
-                                        tol_mu, rcond, column)
+        t2, c2, n_mu = _joint_mu_search(sub, tab, lmax, best, ks, src.direction, src.sigma,
+                                        min(int(max_steps), _MU_JOINT_SIGMA_GRIDS), rtol, atol, rcond, column)
         curv_rss = None if c2 is None else c2 * n_pos / sub.n_samples  # the profile's curvature, to all pixels
         its1 += n_mu
         stats["num_mu_candidates"] = jax.device_put(its1)
@@ -1072,13 +1071,13 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     eq.-25 rows of `obs` at `mu` (`_all_pixel_blocks`), or None (formed here)."""
     bl_obs, bl_sub = blocks
     if tab is not None and bl_sub is not None:
-        jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax)
+        jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax, _K0())
     else:
         jt_sub = _joint_jit(sub, bl_sub, mu, lmax, chunk, rcond, None)  # the Gram blocks once, whatever the shadow
     column = _source_column(jt_sub, sub.fast_visibility, mu, ks0, d, sigma0, lmax)
     if column is not None:
         jt_sub = dataclasses.replace(jt_sub, fvis=sub.fast_visibility[:, column])
-    ks, sigma, status, its, _ = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)
+    ks, sigma, status, its, _ = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, *_limits(max_steps, rtol, atol))
     if sub is obs:
         jt = jt_sub
     elif rows_obs is not None and bl_obs is not None:
@@ -1109,7 +1108,7 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
         jt = _joint_from_table(sub, tab, bl, mu, lmax, jax.device_put(np.int32(k)))
         if column is not None:
             jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
-        vals.append(float(_refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol)[4]))
+        vals.append(float(_refine_search(jt, mu, ks0, d, sigma0, lmax, *_limits(max_steps, rtol, atol))[4]))
     vals = np.where(np.isfinite(vals), vals, np.inf)
     if not np.any(np.isfinite(vals)):
         return t1, None, len(ts)
@@ -1127,7 +1126,9 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
 _MU_T_RANGE = (float(np.log(0.05)), float(np.log(2.5)))  # stage 1's range of log(mu - 1)
 _MU_JOINT_HALF_WIDTH = 0.75  # the joint search's bracket around the stage-1 log(mu - 1): 1.5 first-round steps
 # (9 values 0.19 apart; mu's standard error on the benchmark capture is 0.15 at mu = 1.6: 0.25 in log(mu - 1))
-_MU_JOINT_SIGMA_TOL = 1e-4  # log(sigma)'s tolerance inside the joint mu search
+# log(sigma)'s grids inside the joint mu search: the third's spacing is 0.006 (0.6 % in sigma), enough for the
+# profile over mu; the final refinement runs to its tolerance (at 3 x 96^2 each search took 0.18 s with 6 grids)
+_MU_JOINT_SIGMA_GRIDS = 3
 
 
 def _source_column(jt, fv, mu, ks0, d, sigma0, lmax):
@@ -1152,11 +1153,16 @@ def _column_rss(jt, fvis, mu, ks, d, sigma, lmax):
 
 
 @jaxsh.jit
-def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k=None) -> _Joint:
-    """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH);
-    with batched blocks `bl` (`_mu_blocks`), the first, or the `k`-th (a traced index: one program for all)."""
-    if k is not None:
-        bl = jax.tree_util.tree_map(lambda a: a[k], bl)
+def _K0():
+    """The index 0 as a device scalar, for `_joint_from_table` (one compiled program for every index)."""
+    return jax.device_put(np.int32(0))
+
+
+def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k) -> _Joint:
+    """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH),
+    with the `k`-th of the batched blocks `bl` (`_mu_blocks`; `k` a traced index: one program for every index), or
+    `bl` itself when it is not batched."""
+    bl = jax.tree_util.tree_map(lambda a: a[k], bl) if bl.g.dd.ndim == 3 else bl
     npx = o.n_samples  # the table's first columns (its last ones are quadrature nodes)
     f = tab.s_scale[:npx] if mu is None else tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu)
     rows = jnp.concatenate([tab.d[:npx].T, tab.y2[: (lmax + 1) ** 2, :npx] * f[None, :]], 0)
@@ -1248,6 +1254,12 @@ class _Zoom(eqx.Module):
     ks: Array  # (C,) its K_s
     h: Array  # () half the width of the bracket around t
     n: Array  # () zooms done
+
+
+def _limits(max_steps, rtol, atol):
+    """`_refine_search`'s limits as device scalars, so that every limit runs one compiled program (Python numbers
+    are static arguments of `jaxsh.jit`: the joint mu search's 3 grids would compile a second copy, ~1 s)."""
+    return (jax.device_put(np.int32(max_steps)), jax.device_put(np.float64(rtol)), jax.device_put(np.float64(atol)))
 
 
 @jaxsh.jit

@@ -933,7 +933,7 @@ def test_factorize_joint_rows_from_the_table_equal_those_of_eq25(obs_noisy):
     mu = jnp.asarray(1.7)
     direct = F._joint_jit(sub, None, mu, 12, 4096, 1e-12, None)
     tab = F._mirror_table_jit(sub, 12)
-    via = F._joint_from_table(sub, tab, direct.bl, mu, 12)
+    via = F._joint_from_table(sub, tab, direct.bl, mu, 12, F._K0())
     assert via.rows.shape == direct.rows.shape == (9 + 169, sub.n_samples)
     np.testing.assert_allclose(np.asarray(via.rows), np.asarray(direct.rows), rtol=1e-12, atol=1e-13)
 
