@@ -59,6 +59,8 @@ from ._sharing import Samples, fit_homogeneous, fit_sbrdf, reflectance_samples
 # The roughness whose cut-off (`min(ceil(4 / sigma), H/2 - 1)`, `lighting_from_block`) a given environment map is
 # projected to for the first fit of a known-lighting capture; a smoother fit projects it again (`fit_manifest`).
 _FIRST_SIGMA = 0.1
+# The largest per-sample terms (8 bytes x samples x channels x (l + 1) bands) an automatic cut-off may ask for
+_TERMS_BYTES = 2**30
 
 
 def _json(x):
@@ -247,14 +249,19 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         # The maps were cut off for the roughness `_FIRST_SIGMA`; a surface fitted as smoother reflects finer
         # detail of them (the filter exp(-(sigma l)^2) of eq. 24 is still 1e-7 at l = 4 / sigma): project them
         # again at the fitted sigma's cut-off and fit again, until the cut-off covers the fit (at most twice).
+        # The fit's per-sample terms hold (l + 1) bands per sample and channel: the cut-off is capped so that they
+        # stay within `_TERMS_BYTES` (a 3 x 512^2 capture: l <= 67 instead of ~255 for a mirror-like sphere).
+        cap = max(int(4.0 / _FIRST_SIGMA), _TERMS_BYTES // (8 * sobs.n_samples * max(obs.n_channels, 1)) - 1)
         for _ in range(2):
             if used_lmax is None or solve.get("render_lmax") is not None:
                 break
-            known2, per_view2, lmax2 = given_lighting(float(np.min(np.asarray(res.brdf.sigma))))
+            sigma_fit = float(np.min(np.asarray(res.brdf.sigma)))
+            known2, per_view2, lmax2 = given_lighting(max(sigma_fit, 4.0 / cap))
             if lmax2 <= used_lmax:
                 break
-            say(f"fitted sigma {float(np.min(np.asarray(res.brdf.sigma))):.4f} reflects the environment map beyond "
-                f"its cut-off l = {used_lmax}: fitting again with the map to l = {lmax2}")
+            capped = f" (capped by the capture's size; `solve.render_lmax` sets it)" if sigma_fit < 4.0 / cap else ""
+            say(f"fitted sigma {sigma_fit:.4f} reflects the environment map beyond its cut-off l = {used_lmax}: "
+                f"fitting again with the map to l = {lmax2}{capped}")
             known, per_view, used_lmax = known2, per_view2, lmax2
             res = fit_brdf(sobs, known if per_view is None else per_view, fresnel=bool(solve.get("fresnel", True)),
                            textured=textured)

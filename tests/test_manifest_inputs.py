@@ -780,7 +780,7 @@ def _validator_or_none():
 # ----------------------------------------------------------------------------- the cut-off of a known environment map
 
 
-def test_fit_projects_the_envmap_to_the_fitted_roughness(tmp_path):
+def test_fit_projects_the_envmap_to_the_fitted_roughness(tmp_path, monkeypatch):
     """`jaxsh fit` with a known environment map cut it off at l = 40 (the cut-off of sigma = 0.1) whatever the
     surface: a smoother surface reflects finer detail of the map, and the fit of a sigma = 0.04 sphere under a small
     bright disk was off (sigma, mu) with status `converged`. Now the map is projected again at the fitted sigma's
@@ -813,3 +813,10 @@ def test_fit_projects_the_envmap_to_the_fitted_roughness(tmp_path):
     # measured: sigma to 1e-10, rel_rms 2.5e-8; with the map cut off at l = 40: sigma 0.04029, mu 1.6018, rel_rms 5.6e-3
     assert abs(r["brdf"]["sigma"] - sigma) < 1e-4 and abs(r["brdf"]["mu"] - mu) < 1e-3
     assert r["rel_rms"] < 1e-5
+    # the automatic cut-off is capped by the size of the fit's per-sample terms (`_TERMS_BYTES`): with no room the
+    # map stays at l = 40
+    import solvers._fit_manifest as fm
+
+    monkeypatch.setattr(fm, "_TERMS_BYTES", 0)
+    fit_manifest(_write(tmp_path, m), tmp_path / "fit_capped", progress=False)
+    assert json.loads((tmp_path / "fit_capped" / "result.json").read_text())["lighting"]["envmap_lmax"] == 40
