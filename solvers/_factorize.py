@@ -706,15 +706,12 @@ def factorize(
                 step = t[1] - t[0]
                 t = np.linspace(best - step, best + step, 7)
         # continuous minimum: the parabola through the best point of the last grid and its neighbours
-        if 0 < k < len(t) - 1 and np.all(np.isfinite(vals[k - 1 : k + 2])):
-            h = t[1] - t[0]
-            y0, y1, y2 = vals[k - 1 : k + 2]
-            c2 = (y0 - 2 * y1 + y2) / h**2
-            if c2 > 0:
-                best = t[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h))
-                # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
-                bb_sub = float(_weighted_energy(sub.weights, sub.values))
-                curv_rss = c2 * bb_sub * n_pos / (n_pos if sub is obs else sub.n_samples)
+        vertex, c2 = _parabola(t, vals, k)
+        if c2 is not None:
+            best = vertex
+            # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
+            bb_sub = float(_weighted_energy(sub.weights, sub.values))
+            curv_rss = c2 * bb_sub * n_pos / (n_pos if sub is obs else sub.n_samples)
         mu = jax.device_put(np.asarray(1.0 + np.exp(best), dt))  # (`jnp.asarray` would compile a conversion)
         its1 = 9 + 7 + 7
     else:
@@ -1112,15 +1109,21 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
     vals = np.where(np.isfinite(vals), vals, np.inf)
     if not np.any(np.isfinite(vals)):
         return t1, None, len(ts)
-    k = int(np.argmin(vals))
-    if not 0 < k < len(ts) - 1 or not np.all(np.isfinite(vals[k - 1 : k + 2])):
-        return ts[k], None, len(ts)  # at the bracket's edge: no curvature (mu's standard error is then inf)
-    h = ts[1] - ts[0]
+    return (*_parabola(ts, vals, int(np.argmin(vals))), len(ts))
+
+
+def _parabola(t, vals, k):
+    """The parabola through the grid point `k` of the evenly spaced `t` and its two neighbours: `(vertex, c2)`,
+    the vertex moved by at most one step and the second difference; `(t[k], None)` at the grid's edge, with a
+    non-finite neighbour, or where the parabola is not convex (no curvature: the standard error is then inf)."""
+    if not 0 < k < len(t) - 1 or not np.all(np.isfinite(vals[k - 1 : k + 2])):
+        return t[k], None
+    h = t[1] - t[0]
     y0, y1, y2 = vals[k - 1 : k + 2]
     c2 = (y0 - 2 * y1 + y2) / h**2
-    if c2 <= 0:
-        return ts[k], None, len(ts)
-    return ts[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h)), c2, len(ts)
+    if not c2 > 0:
+        return t[k], None
+    return t[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h)), c2
 
 
 _MU_T_RANGE = (float(np.log(0.05)), float(np.log(2.5)))  # stage 1's range of log(mu - 1)
