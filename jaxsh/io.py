@@ -40,7 +40,6 @@ import tempfile
 
 import numpy as np
 
-from ._grids import latlong_directions
 
 __all__ = [
     "read_image",
@@ -72,6 +71,11 @@ ENCODINGS = ("linear", "srgb")
 
 # extensions written as 8-bit sRGB (for viewing)
 _LDR = {".png", ".jpg", ".jpeg"}
+# the extensions `write_image` writes, and the channel counts each stores as given (other formats, e.g. BMP, TGA or
+# WebP, would be quantized to 8 bits without the sRGB curve, or compressed lossily: refused). PNG's 2nd / 4th channel
+# is its alpha (grey+alpha, RGBA); RGBE holds RGB; PFM grey or RGB; JPEG has no alpha.
+_WRITE_CHANNELS = {".exr": None, ".tif": None, ".tiff": None, ".pfm": (1, 3), ".hdr": (3,), ".png": (1, 2, 3, 4),
+                   ".jpg": (1, 3), ".jpeg": (1, 3)}
 
 
 def _oiio():
@@ -315,7 +319,9 @@ def read_radiance(path, encoding: str | None = None, exposure: float = 1.0, satu
     if isinstance(exposure, bool) or not isinstance(exposure, (int, float, np.floating, np.integer)) \
             or not math.isfinite(exposure) or exposure <= 0:
         raise ValueError(f"`exposure` must be a positive finite number, got {exposure!r} (reading {path})")
-    if saturation is not None and (isinstance(saturation, bool) or not math.isfinite(saturation) or saturation <= 0):
+    if saturation is not None and (isinstance(saturation, bool)
+                                   or not isinstance(saturation, (int, float, np.floating, np.integer))
+                                   or not math.isfinite(saturation) or saturation <= 0):
         raise ValueError(f"`saturation` must be a positive finite number or None, got {saturation!r} (reading {path})")
     if alpha is not None and alpha not in ALPHA_MODES:
         raise ValueError(f'`alpha` must be "ignore", "mask" or None, got {alpha!r} (reading {path})')
@@ -386,7 +392,10 @@ def atomic_output(path):
         raise IsADirectoryError(f"{path}: is a directory, cannot write a file there")
     folder, base = os.path.split(os.path.abspath(path))
     ext = os.path.splitext(base)[1]
-    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=f".tmp{ext}", dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=f".tmp{ext}", dir=folder)
+    except OSError as e:  # a missing or read-only folder: name the target, not the temporary file
+        raise type(e)(e.errno, f"{e.strerror} (cannot create a file in {folder})", path) from None
     os.close(fd)
     try:
         yield tmp
@@ -409,6 +418,8 @@ def write_json(path, obj, indent: int = 2) -> None:
         text = json.dumps(obj, indent=indent, allow_nan=False)
     except ValueError as e:
         raise ValueError(f"refusing to write {path}: {e}") from None
+    except TypeError as e:  # e.g. a NumPy scalar: name the file
+        raise TypeError(f"cannot write {path}: {e}") from None
     with atomic_output(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text + "\n")
@@ -432,10 +443,21 @@ def _write_pixels(path: str, spec, data) -> None:
 def write_image(path, array, *, exposure: float = 0.0, camera: dict | None = None) -> None:
     """Write a float image `(H, W)` or `(H, W, C)`, atomically (`atomic_output`).
 
-    EXR/PFM/TIFF store linear float values; HDR (RGBE) stores non-negative
+    The format is the extension's: EXR, PFM and TIFF (`.tif`, `.tiff`) store
+    the values as given, as 32-bit floats; HDR (RGBE) stores non-negative RGB
     values with an 8-bit shared-exponent mantissa. PNG/JPEG are for viewing:
-    the values are scaled by `2**exposure`, clipped to [0, 1] and
-    sRGB-encoded to 8 bits (read them back with `encoding="srgb"`).
+    the colour is scaled by `2**exposure`, clipped to [0, 1] and sRGB-encoded
+    (IEC 61966-2-1) to 8 bits (read them back with `encoding="srgb"`). A PNG's
+    alpha channel (the last of 2 or 4 channels: grey+alpha, RGBA) is stored
+    unassociated, as given: clipped to [0, 1] and scaled linearly to 8 bits,
+    neither sRGB-encoded nor scaled by `exposure`, and the colour is never
+    multiplied or divided by it. Other extensions are refused.
+
+    Channels each format stores: EXR and TIFF any number; PFM 1 or 3; HDR 3;
+    PNG 1-4; JPEG 1 or 3.
+
+    `exposure`: a finite number, for PNG/JPEG only (another format with a
+    non-zero `exposure` is an error: it stores the values as given).
 
     `camera`: a camera block as `read_manifest` returns it (`views[k]["camera"]`),
     recorded in the header of an EXR file (attribute `jaxsh:camera`, JSON) for
@@ -443,29 +465,55 @@ def write_image(path, array, *, exposure: float = 0.0, camera: dict | None = Non
     `jaxsh fit`); `recorded_camera` reads it back. EXR only.
 
     Impossible or lossy writes are errors (`ValueError` naming the file):
-    complex or non-numeric arrays, non-finite values (with their count), and
-    negative values to HDR (RGBE cannot store them).
+    complex, integer or non-numeric arrays (bool is written as 0 and 1),
+    non-finite values (with their count), values beyond the float32 range,
+    negative values to HDR (RGBE cannot store them), channel counts the
+    format does not hold, empty arrays and unknown extensions.
     """
     path = os.fspath(path)
     raw = np.asarray(array)
     if np.iscomplexobj(raw):
         raise ValueError(f"{path}: refusing to write a complex array: images are real")
-    if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer) or raw.dtype == bool):
+    if np.issubdtype(raw.dtype, np.integer):
+        raise ValueError(f"`array` must hold float values (or bool), got dtype {raw.dtype} (writing {path}): integer "
+                         "code values are not values; convert them (e.g. codes / 255) before writing")
+    if not (np.issubdtype(raw.dtype, np.floating) or raw.dtype == bool):
         raise ValueError(f"`array` must be real numbers, got dtype {raw.dtype} (writing {path})")
+    if raw.ndim not in (2, 3):
+        raise ValueError(f"`array` must have shape (H, W) or (H, W, C), got {raw.shape} (writing {path})")
+    if raw.size == 0:
+        raise ValueError(f"`array` must have at least one row, column and channel, got shape {raw.shape} "
+                         f"(writing {path})")
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in _WRITE_CHANNELS:
+        raise ValueError(f"{path}: cannot write {ext or 'a file without an extension'!r}: the formats written are "
+                         "EXR, PFM, TIFF (.tif, .tiff) and HDR (linear values) and PNG, JPEG (.jpg, .jpeg; 8-bit sRGB, "
+                         "for viewing)")
+    if isinstance(exposure, bool) or not isinstance(exposure, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(exposure):
+        raise ValueError(f"`exposure` must be a finite number, got {exposure!r} (writing {path})")
+    if exposure != 0 and ext not in _LDR:
+        raise ValueError(f"{path}: `exposure` scales PNG/JPEG images for viewing only; {ext} stores the values as "
+                         f"given (got exposure {exposure!r})")
+    bad = int(raw.size - np.count_nonzero(np.isfinite(raw)))
+    if bad:
+        raise ValueError(f"{path}: refusing to write non-finite values: {bad} of {raw.size} values are NaN or inf")
+    over = int(np.count_nonzero(np.abs(raw) > np.finfo(np.float32).max)) if raw.dtype.itemsize > 4 else 0
+    if over:
+        raise ValueError(f"{path}: refusing to write {over} values beyond the float32 range "
+                         f"(|v| > {float(np.finfo(np.float32).max):.4g}): images are stored as 32-bit floats")
     arr = raw.astype(np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
-    if arr.ndim != 3:
-        raise ValueError(f"`array` must have shape (H, W) or (H, W, C), got {raw.shape} (writing {path})")
-    bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
-    if bad:
-        raise ValueError(f"{path}: refusing to write non-finite values: {bad} of {arr.size} values are NaN or inf")
     oiio = _oiio()
-    ext = os.path.splitext(path)[1].lower()
+    h, w, c = arr.shape
     if ext == ".hdr" and np.any(arr < 0):
         n = int(np.count_nonzero(arr < 0))
         raise ValueError(f"{path}: refusing to write negative values: RGBE (.hdr) cannot store them ({n} values < 0)")
-    h, w, c = arr.shape
+    allowed = _WRITE_CHANNELS[ext]
+    if allowed is not None and c not in allowed:
+        raise ValueError(f"{path}: a {ext} file holds {' or '.join(map(str, allowed))} channels, got an array of "
+                         f"{c} (shape {raw.shape})")
     if camera is not None:
         if ext != ".exr":
             raise ValueError(f"{path}: a `camera` is recorded in EXR headers only")
@@ -474,6 +522,9 @@ def write_image(path, array, *, exposure: float = 0.0, camera: dict | None = Non
     if ext in _LDR:
         data = np.clip(_linear_to_srgb(np.clip(arr * 2.0**exposure, 0.0, 1.0)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
         spec = oiio.ImageSpec(w, h, c, "uint8")
+        if c in (2, 4):  # PNG's alpha: linear, unscaled, and stored as given (OpenImageIO would divide the colour by it)
+            data[..., -1] = (np.clip(arr[..., -1], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+            spec.attribute("oiio:UnassociatedAlpha", 1)
     else:
         data = arr
         spec = oiio.ImageSpec(w, h, c, "float")
@@ -482,7 +533,9 @@ def write_image(path, array, *, exposure: float = 0.0, camera: dict | None = Non
     with atomic_output(path) as tmp:
         try:
             _write_pixels(tmp, spec, data)
-        except OSError as e:  # name the target, not the temporary file
+        except ValueError as e:  # name the target, not the temporary file
+            raise ValueError(str(e).replace(tmp, path)) from None
+        except OSError as e:
             if e.errno is None:
                 raise OSError(f"{path}: {e}") from e
             raise OSError(e.errno, e.strerror, path) from e
@@ -509,8 +562,9 @@ def _read_float_array(path: str, what: str, plural: str) -> np.ndarray:
             arr = np.load(path, allow_pickle=False)
         except (ValueError, OSError) as e:
             raise ValueError(f"cannot read {what} {path!r}: {e}") from None
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-            raise ValueError(f"{what} {path!r}: dtype must be float, got {arr.dtype}")
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise ValueError(f"{what} {path!r}: dtype must be float, got {arr.dtype} (integer arrays, like 8/16-bit "
+                             f"integer images, are not {plural})")
     else:
         arr, info = _read_pixels(path)
         if not info["float"]:
@@ -524,7 +578,7 @@ def read_normal_map(path) -> np.ndarray:
     Each pixel holds a unit normal, or the zero vector where the pixel is off
     the object. Validated: finite, three channels, every non-zero vector of
     norm 1 within 1e-3 (renormalized exactly on return). 8/16-bit integer
-    files are rejected (normals need float storage).
+    files and integer `.npy` arrays are rejected (normals need float storage).
 
     **Returns:** float64 `(H, W, 3)`; the object mask is `np.any(n != 0, -1)`.
     Raises `FileNotFoundError` / `ValueError` naming the file.
@@ -552,8 +606,10 @@ def read_texture(path, channels: int = 3) -> np.ndarray:
     """Read a texture map `(H, W, channels)` of non-negative finite values (EXR, PFM or `.npy`).
 
     For per-pixel BRDF parameters (`result.json`'s `brdf.kd = "kd.exr"`):
-    float storage only (8/16-bit integer images are rejected: parameter
-    maps are not pictures), values finite and `>= 0`.
+    float storage only (8/16-bit integer images and integer `.npy` arrays
+    are rejected: parameter maps are not pictures), exactly `channels`
+    channels (an RGBA file is an error, not cut to RGB), values finite and
+    `>= 0`.
 
     **Returns:** float64 `(H, W, channels)`. Raises `FileNotFoundError` /
     `ValueError` naming the file.
@@ -562,9 +618,9 @@ def read_texture(path, channels: int = 3) -> np.ndarray:
     arr = _read_float_array(path, "texture map", "parameter maps")
     if arr.ndim == 2:
         arr = arr[..., None]
-    if arr.ndim != 3 or arr.shape[-1] < channels:
-        raise ValueError(f"texture map {path!r} must have shape (H, W, {channels}), got {arr.shape}")
-    arr = arr[..., :channels]
+    if arr.ndim != 3 or arr.shape[-1] != channels:
+        raise ValueError(f"texture map {path!r} must have shape (H, W, {channels}), got {arr.shape} (channels are "
+                         "neither dropped, e.g. an alpha, nor repeated: which ones hold the values would be a guess)")
     bad = int(np.count_nonzero(~np.isfinite(arr)))
     if bad:
         raise ValueError(f"texture map {path!r}: {bad} values are not finite")
@@ -697,6 +753,16 @@ def _bilinear_clamp(img, u, v):
     return (img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy
 
 
+def _latlong_dirs(h: int, w: int) -> np.ndarray:
+    """float64 `(h, w, 3)` unit directions of a lat-long grid in the library frame (docs/conventions.md, the same
+    as `jaxsh.latlong_directions`): row i at theta = pi (i + 1/2) / h from +z, column j at phi = 2 pi (j + 1/2) / w
+    from +x towards +y. NumPy, so that reading a map needs no JAX (nor float64 there)."""
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2.0 * np.pi * (np.arange(w) + 0.5) / w
+    st = np.sin(theta)[:, None]
+    return np.stack(np.broadcast_arrays(st * np.cos(phi), st * np.sin(phi), np.cos(theta)[:, None]), -1)
+
+
 def read_envmap(
     path, up: str | None = None, layout: str = "latlong", height: int | None = None, encoding: str | None = None
 ) -> np.ndarray:
@@ -736,6 +802,11 @@ def read_envmap(
                          'along -z); up="+y" turns it into the library\'s +z-up frame, up="+z" takes its axes as they are')
     up = "+z" if up is None else up
     path = os.fspath(path)
+    if height is not None:
+        if isinstance(height, bool) or not isinstance(height, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(height) and float(height).is_integer() and height >= 1):
+            raise ValueError(f"`height` must be a positive integer or None, got {height!r} (reading {path})")
+        height = int(height)
     img, info = _read_pixels(path)
     img = _decode(img, _check_encoding(path, encoding, info), info["alpha_channel"])
     img = _drop_opaque_alpha(img, info, f"environment map {path!r} has an alpha channel that is not opaque "
@@ -751,7 +822,7 @@ def read_envmap(
             # library phi_j <-> file u = 0.75 - (j + 1/2)/W: column k = 3W/4 - 1 - j (mod W)
             cols = (3 * fw // 4 - 1 - np.arange(fw)) % fw
             return np.ascontiguousarray(img[:, cols])
-        d = np.asarray(latlong_directions(h, 2 * h, dtype=np.float64))
+        d = _latlong_dirs(h, 2 * h)
         fd = d @ Y_UP_TO_Z_UP if up == "+y" else d  # file-frame direction: M^T d
         if up == "+y":
             theta = np.arccos(np.clip(fd[..., 1], -1, 1))
@@ -763,8 +834,10 @@ def read_envmap(
     # angular map
     if fw != fh:
         raise ValueError(f"angular map {path!r} must be square, got {fw}x{fh}")
-    h = fh // 2 if height is None else int(height)
-    d = np.asarray(latlong_directions(h, 2 * h, dtype=np.float64))
+    if fh < 2 and height is None:
+        raise ValueError(f"angular map {path!r} is {fw}x{fh}: too small for the default `height` (half its size)")
+    h = fh // 2 if height is None else height
+    d = _latlong_dirs(h, 2 * h)
     fd = d @ Y_UP_TO_Z_UP if up == "+y" else d
     # file frame of an angular map: x right, y up, centre looking along -z
     ang = np.arccos(np.clip(-fd[..., 2], -1, 1))  # angle from the centre direction
@@ -1116,6 +1189,9 @@ def read_manifest(path) -> dict:
         saturation = None if v.get("saturation") is None else r.number(v["saturation"], f"{where}.saturation", gt=0)
         if info is not None:
             if info["float"]:
+                if enc == "srgb" and v.get("encoding") is None:  # the top-level default: say so
+                    raise r.err("encoding", f'"srgb" is the default of `{where}.encoding`, but the float image {image} '
+                                            f'holds linear values (EXR/HDR/PFM): give `{where}.encoding` "linear"')
                 if enc == "srgb":
                     raise r.err(f"{where}.encoding", f'must be "linear" for the float image {image} '
                                                      "(EXR/HDR/PFM hold linear values)")
@@ -1242,7 +1318,8 @@ def _brdf_block(r: _Reader, b, views: list):
                 if (c["width"], c["height"]) != (rbf["width"], rbf["height"]):
                     raise r.err(f"views[{k}].camera", f"is {c['width']}x{c['height']} but the spatial RBF {p} has surface "
                                                       f"coordinates in a {rbf['width']}x{rbf['height']} pixel grid")
-            _one_pixel_grid(r, views, f"the spatial RBF `brdf.file` {p} takes its surface coordinates from", p)
+            _one_pixel_grid(r, views, f"the spatial RBF `brdf.file` {p} takes its surface coordinates from", p,
+                            "brdf.file")
         return {"model": "rbf", "file": p, "spatial": rbf["spatial"], "rbf": rbf}
     r.obj(b, "brdf", {"model", "kd", "ks", "mu", "sigma"}, required=("model", "kd", "ks", "sigma"))
     if "mu" not in b:
@@ -1264,20 +1341,20 @@ def _brdf_block(r: _Reader, b, views: list):
             if tex.shape[:2] != (c["height"], c["width"]):
                 raise r.err(f"brdf.{key}", f"is a {tex.shape[1]}x{tex.shape[0]} map but `views[{k}].camera` is "
                                            f"{c['width']}x{c['height']}: a texture map is in the views' pixel grid ({p})")
-        _one_pixel_grid(r, views, f"the texture map `brdf.{key}` {p} is in", p)
+        _one_pixel_grid(r, views, f"the texture map `brdf.{key}` {p} is in", p, f"brdf.{key}")
         out[key] = tex
         out["files"][key] = p
     return out
 
 
-def _one_pixel_grid(r: _Reader, views: list, what: str, path: str) -> None:
+def _one_pixel_grid(r: _Reader, views: list, what: str, path: str, where: str) -> None:
     """Maps in a pixel grid (texture maps, a spatial RBF's surface coordinates) hold values per pixel of one camera:
     the one the file records (`recorded_camera`), else `views[0].camera`'s; every view must have that camera (pose
     and intrinsics), else the values would stick to the image, not the surface."""
     try:
         rec = recorded_camera(path)
-    except ValueError as e:
-        raise ManifestError(f"{r.path}: {e}") from None
+    except (ValueError, OSError) as e:
+        raise r.err(where, f"cannot be used: {e}") from None
     if rec is not None:
         for k, view in enumerate(views):
             if not _same_camera(view["camera"], rec):
@@ -1357,7 +1434,9 @@ def recorded_camera(path) -> dict | None:
 
 
 def read_mesh(path):
-    """Load a triangle mesh (OBJ, PLY, STL, ...) with trimesh, positions only, merged vertices."""
+    """Load a triangle mesh (OBJ, PLY, STL, ...) with trimesh, positions only, merged vertices.
+
+    A vertex that is not finite is an error (`ValueError` naming the file), never dropped with its triangles."""
     import trimesh
 
     path = os.fspath(path)
@@ -1369,5 +1448,10 @@ def read_mesh(path):
         raise ValueError(f"cannot read mesh {path!r}: {e}") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ValueError(f"mesh {path!r} has no triangles")
-    mesh = trimesh.Trimesh(vertices=np.asarray(loaded.vertices), faces=np.asarray(loaded.faces), process=True)
+    vertices = np.asarray(loaded.vertices)
+    bad = ~np.all(np.isfinite(vertices), axis=-1)
+    if np.any(bad):  # trimesh's processing would drop them and their triangles without a word
+        raise ValueError(f"mesh {path!r}: {int(bad.sum())} vertices are not finite (NaN/inf), e.g. vertex "
+                         f"{int(np.argmax(bad))} (0-based)")
+    mesh = trimesh.Trimesh(vertices=vertices, faces=np.asarray(loaded.faces), process=True)
     return mesh

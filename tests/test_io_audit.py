@@ -1,0 +1,251 @@
+"""Writers and readers of `jaxsh.io` at their edges: formats and channel counts `write_image` cannot store, PNG alpha,
+errors that name the target file, option validation, envmap resampling against closed-form directions.
+
+Independent references: OpenImageIO reading the stored codes directly (told not to premultiply), the IEC 61966-2-1
+encoding written out here, and directions from the formulas of docs/conventions.md written out here."""
+
+import json
+import os
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+import jaxsh.io as jio
+
+
+def _srgb_encode_reference(x):
+    """IEC 61966-2-1 encoding, written independently of jaxsh: 12.92 x below 0.0031308, else 1.055 x^(1/2.4) - 0.055."""
+    x = np.asarray(x, np.float64)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.abs(x) ** (1 / 2.4) - 0.055)
+
+
+def _stored_codes(path):
+    """The 8-bit codes as stored in the file (OpenImageIO told that alpha is unassociated: nothing is rescaled)."""
+    import OpenImageIO as oiio
+
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    try:
+        codes = np.asarray(inp.read_image("uint8"))
+    finally:
+        inp.close()
+    return codes.astype(np.int64)
+
+
+@pytest.mark.parametrize("channels", [2, 4])
+def test_png_alpha_is_stored_as_given(tmp_path, channels):
+    """PNG's last channel of 2 or 4 is its alpha: stored linearly (round(255 a)), not sRGB-encoded, not scaled by
+    `exposure`; the colour is sRGB-encoded and never divided by alpha. Before: OpenImageIO divided the colour by
+    alpha (0.2 at alpha 0.25 was stored as the code of 0.8) and the alpha was sRGB-encoded (0.5 -> 188)."""
+    colour = np.array([0.2, 0.4, 0.1])[: channels - 1]
+    a = np.zeros((1, 4, channels), np.float32)
+    a[..., :-1] = colour
+    a[0, :, -1] = [1.0, 0.5, 0.25, 0.0]
+    p = tmp_path / "a.png"
+    jio.write_image(p, a, exposure=1.0)
+    codes = _stored_codes(p)
+    want_colour = np.round(255 * _srgb_encode_reference(np.clip(2.0 * colour, 0, 1)))
+    np.testing.assert_array_equal(codes[0, :, :-1], np.broadcast_to(want_colour, (4, channels - 1)))
+    np.testing.assert_array_equal(codes[0, :, -1], [255, 128, 64, 0])
+    info = jio.read_image_info(p)
+    assert info["alpha"] and info["channels"] == channels
+    back = jio.read_image(p, "srgb")  # jaxsh's reader: colour decoded, alpha linear
+    np.testing.assert_allclose(back[0, :, -1], np.round(255 * a[0, :, -1]) / 255, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(back[0, :, :-1], np.broadcast_to(2.0 * colour, (4, channels - 1)), rtol=0.02)
+
+
+def test_write_refuses_what_it_cannot_store(tmp_path):
+    """Extensions other than EXR/PFM/TIFF/HDR/PNG/JPEG, and channel counts a format does not hold, are errors
+    naming the target (not the temporary file); nothing is left in the folder. Before: BMP/TGA were written as
+    8-bit codes without the sRGB curve (0.5 -> 128), WebP lossily, a 2-channel JPEG got a made-up third channel, a
+    4-channel JPEG lost its alpha, and OpenImageIO's refusals named `.a.hdr.xxxx.tmp.hdr`."""
+    img3 = np.full((2, 2, 3), 0.5, np.float32)
+    for name in ("a.bmp", "a.tga", "a.webp", "a.ppm", "a.gif", "noext"):
+        with pytest.raises(ValueError, match=rf"{name}: cannot write") as e:
+            jio.write_image(tmp_path / name, img3)
+        assert ".tmp" not in str(e.value)
+    for name, c in (("g.hdr", 1), ("ga.hdr", 2), ("rgba.hdr", 4), ("ga.pfm", 2), ("rgba.pfm", 4), ("ga.jpg", 2),
+                    ("rgba.jpeg", 4), ("five.png", 5)):
+        with pytest.raises(ValueError, match=rf"{name}: a \.\w+ file holds .* channels, got an array of {c}") as e:
+            jio.write_image(tmp_path / name, np.full((2, 2, c), 0.5))
+        assert ".tmp" not in str(e.value)
+    assert os.listdir(tmp_path) == []
+    for name, c in (("g.pfm", 1), ("rgb.hdr", 3), ("g.jpg", 1), ("ga.png", 2), ("x.exr", 5), ("x.tiff", 2)):
+        jio.write_image(tmp_path / name, np.full((2, 2, c), 0.5))  # what the formats hold is written
+
+
+def test_write_errors_name_the_target(tmp_path):
+    """A missing folder, an empty array, float64 values beyond float32 and NumPy scalars in JSON: errors that name
+    the file (and say what is wrong), never the temporary file."""
+    with pytest.raises(FileNotFoundError, match=r"nodir") as e:
+        jio.write_image(tmp_path / "nodir" / "a.exr", np.ones((2, 2, 3)))
+    assert e.value.filename == str(tmp_path / "nodir" / "a.exr") and ".tmp" not in str(e.value)
+    with pytest.raises(FileNotFoundError) as e:
+        jio.write_json(tmp_path / "nodir" / "r.json", {"a": 1})
+    assert e.value.filename == str(tmp_path / "nodir" / "r.json")
+    for shape in ((0, 4, 3), (2, 2, 0)):
+        with pytest.raises(ValueError, match=r"`array` must have at least one row, column and channel.*empty\.exr"):
+            jio.write_image(tmp_path / "empty.exr", np.zeros(shape))
+    with pytest.raises(ValueError, match=r"big\.exr: refusing to write 1 values beyond the float32 range"):
+        jio.write_image(tmp_path / "big.exr", np.array([[1.0, 1e300]]))
+    with pytest.raises(TypeError, match=r"r\.json.*float32"):
+        jio.write_json(tmp_path / "r.json", {"x": np.float32(1.5)})
+    assert os.listdir(tmp_path) == []
+
+
+def test_write_image_options_are_validated(tmp_path):
+    """`exposure` must be finite (NaN wrote a black PNG) and is for PNG/JPEG only (an EXR ignored it); integer
+    arrays are refused (uint8 codes were written as values: a white PNG); bool arrays are 0 and 1."""
+    img = np.full((2, 2, 3), 0.5)
+    for bad in (float("nan"), float("inf"), "2", None, True):
+        with pytest.raises(ValueError, match=r"`exposure` must be a finite number"):
+            jio.write_image(tmp_path / "a.png", img, exposure=bad)
+    with pytest.raises(ValueError, match=r"a\.exr: `exposure` scales PNG/JPEG"):
+        jio.write_image(tmp_path / "a.exr", img, exposure=1.0)
+    with pytest.raises(ValueError, match=r"`array` must hold float values.*uint8"):
+        jio.write_image(tmp_path / "u.png", np.full((2, 2, 3), 128, np.uint8))
+    assert os.listdir(tmp_path) == []
+    jio.write_image(tmp_path / "a.exr", img, exposure=0)
+    np.testing.assert_array_equal(jio.read_image(tmp_path / "a.exr"), 0.5)
+    jio.write_image(tmp_path / "b.exr", np.array([[True, False]]))
+    np.testing.assert_array_equal(jio.read_image(tmp_path / "b.exr")[..., 0], [[1.0, 0.0]])
+
+
+def _f(v):
+    """A smooth function of a direction, asymmetric in every axis."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([2 + x + 0.3 * y * z, 2 + y + 0.2 * x, 2 + z - 0.4 * x * y], -1)
+
+
+def _latlong_reference(h, w):
+    """Library directions of a lat-long grid, from docs/conventions.md: theta = pi (i + 1/2)/H, phi = 2 pi (j + 1/2)/W."""
+    t, p = np.meshgrid(np.pi * (np.arange(h) + 0.5) / h, 2 * np.pi * (np.arange(w) + 0.5) / w, indexing="ij")
+    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+
+
+def test_read_envmap_resamples_by_the_documented_directions_without_warnings(tmp_path):
+    """Every resampling path (+z and +y lat-long to another height, +y with a width not divisible by 4, angular)
+    gives f(direction) of the documented directions within the bilinear error, and emits no warning (it emitted
+    JAX's "float64 ... truncated to float32" UserWarning without x64)."""
+    m = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # file (x, y, z) -> library (x, -z, y), conventions.md
+
+    def ydirs(h, w):  # a +y-up lat-long file: u = 0.5 along -z, u = 0.75 along +x, row 0 at +y
+        t, u = np.meshgrid(np.pi * (np.arange(h) + 0.5) / h, 2 * np.pi * (np.arange(w) + 0.5) / w, indexing="ij")
+        return np.stack([-np.sin(t) * np.sin(u), np.cos(t), np.sin(t) * np.cos(u)], -1)
+
+    s = 128
+    jj, ii = np.meshgrid(np.arange(s), np.arange(s))
+    u, v = 2 * (jj + 0.5) / s - 1, 1 - 2 * (ii + 0.5) / s
+    r = np.hypot(u, v)
+    angular = np.stack([np.sin(np.pi * r) * u / r, np.sin(np.pi * r) * v / r, -np.cos(np.pi * r)], -1)
+    cases = [(_f(_latlong_reference(32, 64)), {"height": 24}, 3e-3),
+             (_f(ydirs(32, 64) @ m.T), {"up": "+y", "height": 24}, 3e-3),
+             (_f(ydirs(33, 66) @ m.T), {"up": "+y"}, 2e-3),
+             (np.where((r <= 1)[..., None], _f(angular @ m.T), 0.0), {"up": "+y", "layout": "angular", "height": 16},
+              2e-3)]
+    for k, (img, kw, tol) in enumerate(cases):
+        p = tmp_path / f"e{k}.exr"
+        jio.write_image(p, img.astype(np.float32))
+        with jax.enable_x64(False), warnings.catch_warnings():  # the default configuration of a user
+            warnings.simplefilter("error")
+            env = jio.read_envmap(p, **kw)
+        want = _f(_latlong_reference(*env.shape[:2]))
+        err = np.abs(env - want).max()
+        assert err < tol, (kw, err)
+
+
+def test_read_envmap_height_is_validated(tmp_path):
+    """`height` is a positive integer (2.7 was truncated to 2, "8" and True accepted)."""
+    p = tmp_path / "e.exr"
+    jio.write_image(p, np.ones((8, 16, 3)))
+    for bad in (2.7, "8", True, 0, -2, float("nan")):
+        with pytest.raises(ValueError, match=r"`height` must be a positive integer or None.*e\.exr"):
+            jio.read_envmap(p, height=bad)
+    assert jio.read_envmap(p, height=4).shape == (4, 8, 3)
+    q = tmp_path / "one.exr"
+    jio.write_image(q, np.ones((1, 1, 3)))
+    with pytest.raises(ValueError, match=r"one\.exr.*1x1.*too small"):
+        jio.read_envmap(q, up="+y", layout="angular")
+
+
+def test_float_maps_refuse_integer_arrays_and_extra_channels(tmp_path):
+    """Texture and normal maps are float storage only, `.npy` included (uint8 codes 200 were read as kd = 200),
+    and a texture has exactly its channels (an RGBA EXR was cut to RGB, its alpha ignored)."""
+    np.save(tmp_path / "kd.npy", np.full((2, 2, 3), 200, np.uint8))
+    with pytest.raises(ValueError, match=r"kd\.npy.*dtype must be float, got uint8"):
+        jio.read_texture(tmp_path / "kd.npy")
+    np.save(tmp_path / "n.npy", np.tile(np.array([0, 0, 1], np.int8), (2, 2, 1)))
+    with pytest.raises(ValueError, match=r"n\.npy.*dtype must be float, got int8"):
+        jio.read_normal_map(tmp_path / "n.npy")
+    a = np.full((2, 2, 4), 0.5)
+    jio.write_image(tmp_path / "kd4.exr", a)
+    with pytest.raises(ValueError, match=r"kd4\.exr.*\(H, W, 3\), got \(2, 2, 4\)"):
+        jio.read_texture(tmp_path / "kd4.exr")
+    np.save(tmp_path / "ok.npy", np.full((2, 2, 3), 0.25, np.float32))
+    np.testing.assert_array_equal(jio.read_texture(tmp_path / "ok.npy"), 0.25)
+
+
+def test_read_radiance_saturation_type(tmp_path):
+    """A `saturation` that is not a number is a ValueError naming it (was a bare TypeError)."""
+    jio.write_image(tmp_path / "f.exr", np.ones((2, 2, 3)))
+    for bad in ("2", [2], {"a": 1}):
+        with pytest.raises(ValueError, match=r"`saturation` must be a positive finite number"):
+            jio.read_radiance(tmp_path / "f.exr", saturation=bad)
+
+
+def test_unreadable_recorded_camera_names_the_manifest_field(tmp_path):
+    """A texture map whose `jaxsh:camera` header cannot be read: the error names the manifest, `brdf.kd` and the
+    file (was the manifest and the file only)."""
+    import OpenImageIO as oiio
+
+    n = 4
+    spec = oiio.ImageSpec(n, n, 3, "float")
+    spec.attribute("jaxsh:camera", "{not json")
+    out = oiio.ImageOutput.create(str(tmp_path / "kd.exr"))
+    assert out.open(str(tmp_path / "kd.exr"), spec)
+    assert out.write_image(np.full((n, n, 3), 0.5, np.float32))
+    out.close()
+    cam = {"model": "orthographic", "scale": 0.5, "width": n, "height": n,
+           "cam_to_world": [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]]}
+    m = {"geometry": {"sphere": {"center": [0, 0, 0], "radius": 1}}, "views": [{"camera": cam}],
+         "lighting": {"directional": [{"direction": [0, 0, 1], "radiance": 1.0}]},
+         "brdf": {"model": "torrance_sparrow", "kd": "kd.exr", "ks": 0.1, "mu": None, "sigma": 0.2}}
+    (tmp_path / "m.json").write_text(json.dumps(m))
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `brdf\.kd` cannot be used: .*kd\.exr.*jaxsh:camera"):
+        jio.read_manifest(tmp_path / "m.json")
+
+
+def test_top_level_srgb_default_on_a_float_image_names_the_top_level_field(tmp_path):
+    """A top-level `encoding` "srgb" (for a capture's PNGs) reaching an EXR view: the error names the top-level
+    `encoding` it came from and the view's field that overrides it (it named only `views[1].encoding`, which the
+    manifest does not have). With that override the manifest reads, the EXR as linear."""
+    jio.write_image(tmp_path / "v0.png", np.full((4, 4, 3), 0.5))
+    jio.write_image(tmp_path / "v1.exr", np.full((4, 4, 3), 0.5))
+    cam = {"model": "orthographic", "scale": 0.5,
+           "cam_to_world": [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]]}
+    m = {"geometry": {"sphere": {"center": [0, 0, 0], "radius": 1}}, "encoding": "srgb",
+         "views": [{"image": "v0.png", "camera": cam}, {"image": "v1.exr", "camera": cam}],
+         "lighting": {"directional": [{"direction": [0, 0, 1], "radiance": 1.0}]}}
+    (tmp_path / "m.json").write_text(json.dumps(m))
+    with pytest.raises(jio.ManifestError, match=r"m\.json: `encoding` \"srgb\" is the default of `views\[1\]\.encoding`"
+                                                r", but the float image .*v1\.exr .*give `views\[1\]\.encoding` \"linear\""):
+        jio.read_manifest(tmp_path / "m.json")
+    m["views"][1]["encoding"] = "linear"
+    (tmp_path / "m.json").write_text(json.dumps(m))
+    assert [v["encoding"] for v in jio.read_manifest(tmp_path / "m.json")["views"]] == ["srgb", "linear"]
+
+
+def test_read_mesh_refuses_non_finite_vertices(tmp_path):
+    """A NaN vertex is an error naming the file (trimesh's processing dropped it and its triangle: 2 faces read as
+    1); the finite triangle alone reads, with its 3 vertices."""
+    p = tmp_path / "nan.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv nan 0 1\nf 1 2 3\nf 1 2 4\n")
+    with pytest.raises(ValueError, match=r"nan\.obj.*1 vertices are not finite.*vertex 3"):
+        jio.read_mesh(p)
+    q = tmp_path / "ok.obj"
+    q.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    m = jio.read_mesh(q)
+    assert len(m.faces) == 1 and np.array_equal(np.sort(m.vertices, axis=0), [[0, 0, 0], [0, 0, 0], [1, 1, 0]])
