@@ -609,6 +609,9 @@ def test_factorize_fitted_is_the_model_at_the_estimate(capture, obs_noisy, facto
     r = solvers.factorize(obs_noisy, 8, search_pixels=3000)
     assert r.fitted.shape == obs_noisy.values.shape
     np.testing.assert_allclose(_weighted_rms(obs_noisy, r.fitted), float(r.rms), rtol=1e-9)
+    # counted over every sample too (stage 1 starts the joint mu search from the subset's blocks, then is redone)
+    n_pos = int(np.count_nonzero(np.asarray(obs_noisy.weights) > 0))
+    assert n_pos > 3000 and int(r.stats["n_obs"]) == n_pos * obs_noisy.n_channels
 
 
 def test_factorize_options(obs_noisy):
