@@ -16,9 +16,16 @@ that defines their inputs. The README uses the name `images` for
 both parts (the views of `solvers.observations`, then the images under
 directional lights of `solvers.reflectance_samples`); the second prelude
 rebinds it.
+
+Those two tests run the README's own sizes (factorize at lmax 12, 2,000 RBF centres: a few minutes) and are
+marked slow (`make test-all`). The fast tests below keep `make test` watching the README too: every
+`jaxsh.*` / `solvers.*` name it shows exists and every call of one in the Usage block binds to the callee's
+signature (the arguments' count and keywords), every repository path and link it gives exists (with the
+heading an anchor names), and every `make` target it names is in the Makefile.
 """
 
 import ast
+import inspect
 import os
 import re
 from pathlib import Path
@@ -33,9 +40,6 @@ import jaxsh.io
 import solvers
 from solvers import synthetic
 
-# Runs the README Usage block at its own sizes (factorize at lmax 12): a few minutes; `make test-all` runs it.
-pytestmark = pytest.mark.slow
-
 README = Path(__file__).resolve().parents[1] / "README.md"
 SHARING_MARK = "# Reflectance sharing"
 
@@ -47,18 +51,9 @@ def _unit(v):
 
 def usage_blocks():
     """`[(first README line number, code)]` of the ```python blocks in the "## Usage" section."""
-    lines = README.read_text(encoding="utf-8").splitlines()
-    start = next((i for i, s in enumerate(lines) if s.strip() == "## Usage"), None)
-    assert start is not None, "README.md has no '## Usage' section"
-    blocks, i = [], start + 1
-    while i < len(lines) and not lines[i].startswith("## "):
-        if lines[i].strip() == "```python":
-            j = i + 1
-            while lines[j].strip() != "```":
-                j += 1
-            blocks.append((i + 2, "\n".join(lines[i + 1 : j])))  # 1-based number of the block's first line
-            i = j
-        i += 1
+    text = README.read_text(encoding="utf-8")
+    assert "\n## Usage\n" in text, "README.md has no '## Usage' section"
+    blocks = usage_blocks_of(text)
     assert blocks, "README.md's '## Usage' section has no ```python block"
     return blocks
 
@@ -156,6 +151,8 @@ def sharing_prelude(ns):
 # --------------------------------------------------------------------------- tests
 
 
+# The two tests that run the README Usage block at its own sizes (factorize at lmax 12): a few minutes;
+# `make test-all` runs them, `make test` the fast checks further below.
 @pytest.fixture(scope="module")
 def forward_and_inverse(tmp_path_factory):
     """Run the README's Usage lines before "Reflectance sharing": `(namespace, history)`."""
@@ -173,15 +170,30 @@ def forward_and_inverse(tmp_path_factory):
     return ns, history
 
 
+@pytest.mark.slow
 def test_readme_usage_forward_and_inverse(forward_and_inverse):
     ns, hist = forward_and_inverse
     assert ns["env"].shape == (40, 80, 3)
     assert ns["L"].shape == (289, 3)
     assert hist["img"][0].shape == (128, 256, 3)
     assert ns["Y"].shape == (64, 81)
+    # "coeffs_first=True: (81, ...)": the transpose, exactly
+    assert ns["Yt"].shape == (81, 64)
+    np.testing.assert_array_equal(np.asarray(ns["Yt"]), np.asarray(ns["Y"]).T)
+    # "L_rot: coefficients of f(R^T w)": the rotated expansion at w equals the original one at R^T w
+    # (direction rows d: the rows of d @ R are (R^T w)^T), at the prelude's random directions
+    # (the README's L is float32: read_envmap returns the file's float32 and the library follows it)
+    d, R = np.asarray(ns["dirs"]), np.asarray(ns["R"], np.float64)
+    L, L_rot = np.asarray(ns["L"], np.float64), np.asarray(ns["L_rot"], np.float64)
+    lhs, rhs = np.asarray(jaxsh.real_sh(d, 16)) @ L_rot, np.asarray(jaxsh.real_sh(d @ R, 16)) @ L
+    np.testing.assert_allclose(lhs, rhs, rtol=0, atol=1e-6 * np.abs(rhs).max())
     assert ns["c"].shape == (25, 3)
     assert ns["E"].shape == (64, 3)
     assert np.asarray(ns["A"]).shape == (17,)
+    # "ok, lstar = recoverable_orders(A, noise=0.01)": a mask per band and the largest l with all bands <= l usable
+    ok, lstar = ns["ok"], ns["lstar"]
+    assert np.asarray(ok).shape == (17,) and isinstance(lstar, int)
+    assert np.all(np.asarray(ok)[: lstar + 1]) and (lstar == 16 or not np.asarray(ok)[lstar + 1])
     assert ns["rho"].shape == (64,)
     assert hist["B"][0].total.shape == (256, 256, 3)
     assert ns["image"].shape == (256, 256, 3)
@@ -197,8 +209,21 @@ def test_readme_usage_forward_and_inverse(forward_and_inverse):
     assert isinstance(status, str)
     assert isinstance(brdf_fit, solvers.TorranceSparrow)
     assert solvers.status_name(ns["fit"].status) == "converged"  # throw=True returned
-    assert isinstance(ns["tex"], solvers.Solution)
-    assert ns["il"].estimate is not None
+    # "obs.to_images(fit.fitted): the fitted model at every sample, as images": one image per view, 0 (the default
+    # fill) off the mask
+    fitted = ns["obs"].to_images(ns["fit"].fitted)
+    assert len(fitted) == len(ns["images"])
+    for im, m in zip(fitted, ns["masks"]):
+        assert np.asarray(im).shape == m.shape + (3,)
+        assert np.all(np.asarray(im)[~m] == 0.0)
+    # "Every result is a solvers.Solution: estimate, status, iterations, rms, rel_rms, stats"
+    for name in ("fit", "tex", "il", "fac"):
+        res = ns[name]
+        assert isinstance(res, solvers.Solution), name
+        for field in ("estimate", "status", "iterations", "rms", "rel_rms", "stats"):
+            assert getattr(res, field) is not None, (name, field)
+    # "il.supported_lmax, il.singular_values"
+    assert np.asarray(ns["il"].supported_lmax).shape == (3,) and np.asarray(ns["il"].singular_values).size > 0
     kd, ks = np.asarray(ns["fac"].brdf.kd), np.asarray(ns["fac"].brdf.ks)
     np.testing.assert_allclose(kd + ks, 1.0, rtol=1e-9)  # "Kd + Ks = 1"
     assert np.all(np.asarray(exprs["fac.source.sigma"]) > 0.0)
@@ -206,6 +231,7 @@ def test_readme_usage_forward_and_inverse(forward_and_inverse):
     assert new.shape == (256, 256, 3) and np.all(np.isfinite(new))
 
 
+@pytest.mark.slow
 def test_readme_usage_reflectance_sharing(forward_and_inverse):
     _, after = usage_statements()
     ns, hist = dict(forward_and_inverse[0]), {}
@@ -218,3 +244,162 @@ def test_readme_usage_reflectance_sharing(forward_and_inverse):
     assert img.shape == (32, 32, 3) and np.all(np.isfinite(img))
     assert np.all(img[~ns["mask"]] == 0.0)
     assert ns["rbf"](ns["points"]).shape == (64, 3)
+
+
+# --------------------------------------------------------------------------- fast checks (make test)
+
+ROOTS = {"jaxsh": jaxsh, "solvers": solvers}
+NAME = re.compile(r"\b(?:jaxsh|solvers)(?:\.[A-Za-z_]\w*)+")
+
+
+def _dotted(node):
+    """`"a.b.c"` of a `Name` / `Attribute` chain, else None."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name):
+        return None
+    return ".".join([node.id, *reversed(parts)])
+
+
+def _resolve(dotted):
+    """The object `dotted` (rooted at jaxsh or solvers) names; AttributeError if there is none."""
+    root, *rest = dotted.split(".")
+    obj = ROOTS[root]
+    for part in rest:
+        obj = getattr(obj, part)
+    return obj
+
+
+def usage_blocks_of(text):
+    """`[(first line number (1-based), code)]` of the ```python blocks in the "## Usage" section of `text`."""
+    lines = text.splitlines()
+    start = next(i for i, s in enumerate(lines) if s.strip() == "## Usage")
+    blocks, i = [], start + 1
+    while i < len(lines) and not lines[i].startswith("## "):
+        if lines[i].strip() == "```python":
+            j = i + 1
+            while lines[j].strip() != "```":
+                j += 1
+            blocks.append((i + 2, "\n".join(lines[i + 1 : j])))
+            i = j
+        i += 1
+    return blocks
+
+
+def _code_spans(text):
+    """Inline `code` spans of Markdown text (outside the fenced blocks)."""
+    prose = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    return re.findall(r"`([^`\n]+)`", prose)
+
+
+def readme_api_uses(text):
+    """`(where, dotted name, call)` for every `jaxsh.*` / `solvers.*` the README shows.
+
+    `call` is `(n positional, keyword names)` for a call in the Usage block or in an inline code span that
+    parses as Python, else None (a name only).
+    """
+    uses = []
+    for first, code in [(0, c) for c in _code_spans(text)] + usage_blocks_of(text):
+        where = f"README.md:{first}" if first else f"README.md `{code}`"
+        try:
+            tree = ast.parse("\n" * (first - 1 if first else 0) + code.replace("...", "None"))
+        except SyntaxError:
+            uses += [(where, m, None) for m in NAME.findall(code)]
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and (name := _dotted(node.func)) and name.split(".")[0] in ROOTS:
+                line = f"README.md:{node.lineno}" if first else where
+                uses.append((line, name, (len(node.args), [k.arg for k in node.keywords])))
+            elif isinstance(node, ast.Attribute) and (name := _dotted(node)) and name.split(".")[0] in ROOTS:
+                uses.append((f"README.md:{node.lineno}" if first else where, name, None))
+    return uses
+
+
+def api_problems(text):
+    """What of the README's `jaxsh.*` / `solvers.*` does not exist or does not bind, as messages."""
+    problems = []
+    for where, name, call in readme_api_uses(text):
+        try:
+            obj = _resolve(name)
+        except AttributeError:
+            problems.append(f"{where}: {name} does not exist")
+            continue
+        if call is None:
+            continue
+        n_pos, keywords = call
+        try:
+            sig = inspect.signature(obj)
+        except (TypeError, ValueError):  # no signature to bind against
+            continue
+        try:
+            sig.bind(*([None] * n_pos), **dict.fromkeys(keywords))
+        except TypeError as e:
+            problems.append(f"{where}: {name}({n_pos} positional, keywords {keywords}) does not bind to {sig}: {e}")
+    return sorted(set(problems))
+
+
+def test_readme_api_names_exist_and_calls_bind():
+    text = README.read_text(encoding="utf-8")
+    uses = readme_api_uses(text)
+    calls = {name for _, name, call in uses if call is not None}
+    # the check sees the Usage block's calls and the prose's names and calls
+    assert {"jaxsh.real_sh", "jaxsh.io.read_envmap", "jaxsh.render_practical", "solvers.fit_brdf",
+            "solvers.factorize", "solvers.fit_sbrdf", "solvers.pad_observations"} <= calls, calls
+    assert {"solvers.inverse_lighting_dual", "solvers.fit_brdf_sh", "jaxsh.compile_options"} <= {n for _, n, _ in uses}
+    problems = api_problems(text)
+    assert not problems, "\n".join(problems)
+
+
+def test_readme_api_check_fails_on_a_broken_readme():
+    """The check above is not vacuous: a renamed function, a wrong keyword, an extra argument each fail it."""
+    text = README.read_text(encoding="utf-8")
+    for old, new, expect in (("jaxsh.real_sh(dirs, lmax=8)", "jaxsh.real_shh(dirs, lmax=8)", "does not exist"),
+                             ("solvers.factorize(obs, lmax=12)", "solvers.factorize(obs, l_max=12)", "does not bind"),
+                             ("jaxsh.real_sh(dirs, lmax=8)", "jaxsh.real_sh(dirs, 8, 9)", "does not bind"),
+                             ("`solvers.inverse_lighting_dual`", "`solvers.inverse_lighting_duel`", "does not exist"),
+                             ("`solvers.pad_observations(obs, bucket=True)`", "`solvers.pad_observations(obs, buckets=True)`",
+                              "does not bind")):
+        assert old in text, old
+        problems = api_problems(text.replace(old, new, 1))
+        assert len(problems) == 1 and expect in problems[0], (new, problems)
+
+
+def _slug(heading):
+    """GitHub's anchor of a Markdown heading."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_readme_paths_and_links_exist():
+    text = README.read_text(encoding="utf-8")
+    root = README.parent
+    links = [s for s in re.findall(r"\]\(([^)\s]+)\)", text) if not re.match(r"[a-z]+:", s)]
+    # repository paths the prose names (docs/..., benchmarks/..., ...)
+    paths = set(re.findall(r"(?<![\w/.])((?:docs|benchmarks|notebooks|tests|jaxsh|solvers)/[\w./-]*\w)", text))
+    assert len(links) >= 3 and {"docs/manifest.md", "docs/conventions.md", "benchmarks/gpu_checks.sh"} <= paths, (links, paths)
+    for link in links:
+        path, _, anchor = link.partition("#")
+        target = root / path
+        assert target.exists(), f"README.md links to {link}: {path} is not in the repository"
+        if anchor:
+            slugs = {_slug(h) for h in re.findall(r"^#+ (.*)$", target.read_text(encoding="utf-8"), flags=re.M)}
+            assert anchor in slugs, f"README.md links to {link}: no heading of {path} has the anchor #{anchor}"
+    for path in paths:
+        assert (root / path).exists(), f"README.md names {path}, which is not in the repository"
+
+
+def test_readme_make_targets_exist():
+    text = README.read_text(encoding="utf-8")
+    makefile = (README.parent / "Makefile").read_text(encoding="utf-8")
+    targets = set(re.findall(r"^([\w-]+):", makefile, flags=re.M))
+    # `make X` in code: inline spans and the ```bash block (not the prose's verb "make")
+    bash = "\n".join(re.findall(r"^```bash\n(.*?)^```", text, flags=re.S | re.M))
+    named = {m for code in _code_spans(text) + [bash] for m in re.findall(r"(?:^|\s)make ([a-z][\w-]*)", code, flags=re.M)}
+    assert {"demo", "test", "test-all", "bench"} <= named, named
+    assert named <= targets, named - targets
+    # "`make test` runs `pytest -m "not slow" ...`": every option and path of the quoted line is in the recipe
+    quoted = re.search(r"`make test` runs `pytest ([^`]*)`", text).group(1).replace('"not slow"', "").split()
+    recipe = re.search(r"^test:.*\n\t(.*)$", makefile, flags=re.M).group(1)
+    assert '-m "not slow"' in recipe
+    assert set(quoted) <= set(recipe.split()), (quoted, recipe)
