@@ -105,8 +105,8 @@ def metallic_brdf(wi, wo, n):
     """A measured-like coloured specular BRDF, RGB `(..., 3)`.
 
     $\\rho_k = k_{d,k}/\\pi + \\sum_{j=1,2} \\mathrm{CT}(k_{s,jk}, m_j, \\mu)$:
-    Cook–Torrance lobes with $m = 0.12$ and $0.35$ and a Fresnel term of
-    index 1.3 (strong grazing brightening), blue-tinted.
+    Cook–Torrance lobes with $m = 0.2$ and $0.45$ and a Fresnel term of
+    index $\\mu = 3.0$, blue-tinted (`_METAL_KD`, `_METAL_KS1`, `_METAL_KS2`).
     """
     chans = []
     for c in range(3):
