@@ -599,8 +599,14 @@ def uvw_from_directions(
 
     Symmetric in `wi` and `wo` and independent of the tangent. At
     $\\theta_d = 0$ ($\\omega_i = \\omega_o$), where $\\phi_d$ is undefined,
-    $\\phi_d = 0$ is used: the value is finite (but $(u, v)$ is discontinuous
-    there unless $\\theta_h = 0$), and so are the gradients. $w = 2\\theta_d/\\pi$
+    $\\phi_d = 0$ is used where $\\omega_i = \\omega_o$ exactly in the local frame;
+    where they are equal only up to rounding (a light at the camera, in
+    general position) $\\phi_d$ is the azimuth of the rounding and the sample
+    lands at an arbitrary point of the circle of radius $\\sin\\theta_h$
+    (an isotropic BRDF does not depend on $\\phi_d$ at $\\theta_d = 0$; Zickler
+    2006 sec. 4, after eq. 7, notes the singularity; `docs/sharing.md`). The
+    value is finite (but $(u, v)$ is discontinuous there unless $\\theta_h =
+    0$), and so are the gradients. $w = 2\\theta_d/\\pi$
     with $\\theta_d = \\operatorname{atan2}(|\\omega_h\\times\\omega_i|,
     \\omega_h\\cdot\\omega_i)$ (`rusinkiewicz_angles`): smooth, with its true
     gradient, at the mirror configuration $\\theta_h = 0$ too.

@@ -101,7 +101,7 @@ def test_result_contract(rng):
     assert int(fit.stats["n_centers"]) == 120 and int(fit.stats["count"]) == 1600
     assert int(fit.status_code) == 0  # deprecated integer form, kept
     interp = solvers.fit_sharing(x[:50], y[:50], 50, throw=True)
-    assert interp.converged and float(interp.rms) == 0.0 and int(interp.iterations) == 0
+    assert interp.converged and float(interp.rms) < 1e-13 and int(interp.iterations) == 0  # measured: rounding
     tight = solvers.fit_sharing(x, y, 40, tol=1e-9, n_add=10)
     assert tight.status == solvers.Status.tolerance_not_reached and int(tight.status_code) == 1
     with pytest.raises(solvers.SolveError, match="tolerance_not_reached"):
