@@ -206,6 +206,14 @@ def run_dist(port: int, rank: int):
            "kd": np.asarray(fit.brdf.kd).tolist(), "ks": np.asarray(fit.brdf.ks).tolist(),
            "mu": float(fit.brdf.mu), "sigma": float(fit.brdf.sigma), "rms": float(fit.rms),
            "coeffs": np.asarray(il.coeffs).ravel().tolist(), "il_rms": float(il.rms)}
+    # fit_many with its batch sharded across the processes (one member per process, the second one black): every
+    # process gets every capture's result (the batch's shards gathered), each its own fit_brdf in this process
+    caps = many_captures(views=(1, 1), size=10, degenerate=1)
+    many = solvers.fit_many(caps, mesh=solvers.pixel_mesh(axis="batch"))
+    single = [solvers.fit_brdf(o, lit) for o, lit in caps]
+    out["many_status"] = [_status(r) for r in many]
+    out["many_status_single"] = [_status(r) for r in single]
+    out["many_vs_single"] = [compare(a, b)["rel"] for a, b in zip(many, single)]
     jax.distributed.shutdown()
     return out
 

@@ -133,6 +133,9 @@ def test_two_processes_agree_with_one():
             a, b = np.asarray(r[key]), np.asarray(ref[key])
             assert np.max(np.abs(a - b)) <= STOP_TOL * np.max(np.abs(b)), key
     assert res[0]["coeffs"] == res[1]["coeffs"]  # both processes hold the same (replicated) answer
+    for r in res:  # fit_many, its batch sharded over the processes: every result readable in every process
+        assert r["many_status"] == r["many_status_single"] == ["converged", "no_signal"], r
+        assert max(r["many_vs_single"]) < STOP_TOL, r  # each member its own fit_brdf (the padding reorders sums)
 
 
 def test_pad_observations_adds_weightless_finite_samples():
