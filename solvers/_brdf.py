@@ -46,7 +46,7 @@ from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for,
 from ._jacobian import explicit_jacobian
 from ._normal_equations import (covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared,
                                 solve_sym2, solve_sym2_min_norm)
-from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
+from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
 
@@ -255,6 +255,7 @@ def fit_brdf(
         if lit.n_channels not in (1, obs.n_channels):
             raise ValueError(f"`lighting` has {lit.n_channels} channels, the images in `obs` {obs.n_channels} (give the same C, or 1)")
     max_steps = check_int(max_steps, "max_steps")
+    fresnel = check_bool(fresnel, "fresnel")
     search_pixels = None if search_pixels is None else check_int(search_pixels, "search_pixels")
     rtol = None if rtol is None else check_float(rtol, "rtol")
     atol = None if atol is None else check_float(atol, "atol")

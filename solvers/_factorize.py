@@ -116,7 +116,7 @@ from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_regi
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
                                 mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
-from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, worst
+from ._results import Solution, Status, check_bool, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 class SourceEstimate(eqx.Module):
@@ -650,6 +650,8 @@ def factorize(
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
     lmax = check_int(lmax, "lmax", lo=0)
     max_steps, chunk = check_int(max_steps, "max_steps"), check_int(chunk, "chunk")
+    fresnel, find_sigma = check_bool(fresnel, "fresnel"), check_bool(find_sigma, "find_sigma")
+    refine, refine_mu = check_bool(refine, "refine"), check_bool(refine_mu, "refine_mu")
     search_pixels = None if search_pixels is None else check_int(search_pixels, "search_pixels")
     if lmax < 3:
         raise ValueError(f"`lmax` must be >= 3 for factorization, got {lmax}")

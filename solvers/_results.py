@@ -27,6 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
@@ -214,6 +215,16 @@ def check_int(value, name: str, lo: int = 1) -> int:
     if v < lo:
         raise ValueError(f"`{name}` must be an int >= {lo}, got {v}")
     return v
+
+
+def check_bool(value, name: str, none: bool = False) -> bool | None:
+    """A static bool flag (`None` too with `none`): anything else, e.g. the string "no", which is truthy, is a
+    `ValueError` naming `name` (`fit_brdf(fresnel="no")` fitted mu)."""
+    if value is None and none:
+        return None
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"`{name}` must be True or False{' or None' if none else ''}, got {value!r}")
+    return bool(value)
 
 
 def check_float(value, name: str, lo: float = 0.0, strict: bool = False) -> float:

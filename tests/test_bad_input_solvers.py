@@ -249,13 +249,15 @@ def test_inverse_lighting_dual_options(obs, opt):
     _raises_named(lambda: solvers.inverse_lighting_dual(obs, BRDF, **kw), name)
 
 
-@given(opt=st.sampled_from([("max_steps", 0), ("max_steps", -3), ("chunk", 0), ("search_pixels", 0)]))
+@given(opt=st.sampled_from([("max_steps", 0), ("max_steps", -3), ("chunk", 0), ("search_pixels", 0),
+                            ("fresnel", "no"), ("find_sigma", 0), ("refine", "yes"), ("refine_mu", None)]))
 def test_factorize_options(obs, opt):
     name, value = opt
     _raises_named(lambda: solvers.factorize(obs, 3, **{name: value}), name)
 
 
-@given(opt=st.sampled_from([("max_steps", 0), ("max_steps", -2), ("rtol", -1.0), ("atol", np.nan)]))
+@given(opt=st.sampled_from([("max_steps", 0), ("max_steps", -2), ("rtol", -1.0), ("atol", np.nan), ("fresnel", "no"),
+                            ("fresnel", 1), ("refine", "no")]))
 def test_fit_brdf_options(obs, opt):
     name, value = opt
     _raises_named(lambda: solvers.fit_brdf(obs, LIGHT, **{name: value}), name)
