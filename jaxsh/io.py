@@ -156,7 +156,9 @@ def read_image_info(path) -> dict:
     _check_readable(path)
     inp = _open(path)
     try:
-        return _header(path, inp.spec())[0]
+        info = _header(path, inp.spec())[0]
+        _single_image(path, inp)
+        return info
     finally:
         inp.close()
 
@@ -193,13 +195,69 @@ def _read_pixels(path: str):
         data = inp.read_image("float")
         if data is None:
             raise ValueError(f"cannot read image {path!r}: {inp.geterror()}")
+        _single_image(path, inp)
+        scale = _radiance_scale(path) if inp.format_name() == "hdr" else None
     finally:
         inp.close()
     arr = np.asarray(data, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
+    if scale is not None:
+        arr = arr / scale[: arr.shape[-1]].astype(np.float32)
     arr = np.ascontiguousarray(_ORIENT[lay["orientation"]](arr[lay["rows"], lay["cols"]]))
     return arr, {**info, "alpha_channel": alpha_channel}
+
+
+def _single_image(path: str, inp) -> None:
+    """A file of several subimages (a multi-part EXR, a multi-page TIFF) is an error: which one holds the image would
+    be a guess (only the first used to be read, without a word). Call it after reading: a failed seek leaves an
+    error on `inp`, cleared here."""
+    if not inp.seek_subimage(1, 0):
+        inp.geterror()
+        return
+    n = 2
+    while n < 1000 and inp.seek_subimage(n, 0):
+        n += 1
+    inp.geterror()
+    raise ValueError(f"image {path!r} holds {n} subimages (parts or pages); jaxsh reads files of one image: "
+                     "save the one that holds the picture on its own")
+
+
+def _radiance_scale(path: str) -> np.ndarray | None:
+    """Per-channel divisor `(3,)` of a Radiance `.hdr` (RGBE) file's header, or None when it is 1.
+
+    The Radiance file format: "EXPOSURE: a multiplier that has been applied to all the pixels in the file ...
+    cumulative, so the original pixel values (radiances) must be derived by taking the values in the file and
+    dividing by all the EXPOSURE settings multiplied together"; COLORCORR likewise per channel (e.g. `pfilt`
+    writes both). OpenImageIO reports only the last EXPOSURE line, so the header is read here. A GAMMA line other
+    than 1 and XYZE pixels (CIE XYZ, not RGB) are errors."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    end = head.find(b"\n\n")
+    lines = (head if end < 0 else head[:end]).split(b"\n")
+    scale = np.ones(3)
+
+    def numbers(line, n):
+        try:
+            vals = [float(t) for t in line.split(b"=", 1)[1].split()]
+        except ValueError:
+            vals = []
+        if len(vals) != n or not all(np.isfinite(vals)) or not all(v > 0 for v in vals):
+            raise ValueError(f"Radiance image {path!r}: cannot read the header line {line.decode(errors='replace')!r}")
+        return vals
+
+    for line in lines:
+        key = line.split(b"=", 1)[0].strip().upper()
+        if key == b"EXPOSURE":
+            scale = scale * numbers(line, 1)[0]
+        elif key == b"COLORCORR":
+            scale = scale * np.asarray(numbers(line, 3))
+        elif key == b"GAMMA" and numbers(line, 1)[0] != 1.0:
+            raise ValueError(f"Radiance image {path!r}: its header declares {line.decode(errors='replace')!r}; "
+                             "linear values are read, and a gamma would make them a guess")
+        elif key == b"FORMAT" and b"xyze" in line.lower():
+            raise ValueError(f"Radiance image {path!r} holds CIE XYZ pixels (FORMAT=32-bit_rle_xyze), not RGB")
+    return None if np.all(scale == 1.0) else scale
 
 
 def _check_encoding(path: str, encoding, info: dict) -> str:
@@ -247,7 +305,12 @@ def read_image(path, encoding: str | None = None) -> np.ndarray:
     Row 0 is the top of the image as displayed: the file's display window
     (EXR files may store a larger data window, which is cut to it; a smaller
     one is an error) turned by its EXIF/TIFF orientation tag (a Radiance
-    `.hdr` stored bottom-up reports tag 4). Values are **as stored**: an
+    `.hdr` stored bottom-up reports tag 4). A Radiance `.hdr` is divided by its
+    header's EXPOSURE and COLORCORR lines (cumulative, as the Radiance format
+    defines them: the radiance the file represents; `pfilt` writes them); a
+    GAMMA line other than 1 and XYZE pixels are errors. A file of several
+    subimages (a multi-part EXR, a multi-page TIFF) is an error. Values are
+    otherwise **as stored**: an
     alpha channel (`read_image_info(path)["alpha"]`) is returned in its place,
     scaled like the colour but never sRGB-decoded, and the colour is never
     multiplied or divided by it (PNG and TIFF store colour unassociated with

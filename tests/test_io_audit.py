@@ -249,3 +249,61 @@ def test_read_mesh_refuses_non_finite_vertices(tmp_path):
     q.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     m = jio.read_mesh(q)
     assert len(m.faces) == 1 and np.array_equal(np.sort(m.vertices, axis=0), [[0, 0, 0], [0, 0, 0], [1, 1, 0]])
+
+
+def _radiance_file(path, header: bytes, rgbe=(128, 128, 128, 129)):
+    """A 1x2 Radiance RGBE file written byte by byte (flat scanlines): stored value 1.0 in every channel."""
+    with open(path, "wb") as f:
+        f.write(b"#?RADIANCE\n" + header + b"FORMAT=32-bit_rle_rgbe\n\n-Y 1 +X 2\n")
+        f.write(bytes(rgbe) * 2)
+
+
+def test_radiance_exposure_and_colorcorr_are_divided_out(tmp_path):
+    # Radiance's file format: EXPOSURE and COLORCORR lines are cumulative multipliers applied to the pixels; the
+    # radiance is the stored value divided by their product (OpenImageIO reports only the last EXPOSURE line).
+    # The stored value 1.0 is the RGBE quadruple (128, 128, 128, 129): 128/256 * 2^(129-128).
+    cases = [(b"", [1.0, 1.0, 1.0]), (b"EXPOSURE=          1.0000000000000\n", [1.0, 1.0, 1.0]),
+             (b"EXPOSURE=4\n", [0.25, 0.25, 0.25]), (b"EXPOSURE=2\nEXPOSURE=2\n", [0.25, 0.25, 0.25]),
+             (b"COLORCORR=1 2 0.5\n", [1.0, 0.5, 2.0]), (b"EXPOSURE=2\nCOLORCORR=1 2 0.5\nGAMMA=1\n", [0.5, 0.25, 1.0])]
+    for k, (header, want) in enumerate(cases):
+        p = tmp_path / f"r{k}.hdr"
+        _radiance_file(p, header)
+        got = jio.read_image(p)
+        assert got.shape == (1, 2, 3)
+        np.testing.assert_array_equal(got[0, 0], np.asarray(want, np.float32), err_msg=repr(header))
+
+
+def test_radiance_gamma_and_xyz_are_errors(tmp_path):
+    p = tmp_path / "g.hdr"
+    _radiance_file(p, b"GAMMA=2.2\n")
+    with pytest.raises(ValueError, match="GAMMA=2.2"):
+        jio.read_image(p)
+    q = tmp_path / "x.hdr"
+    with open(q, "wb") as f:
+        f.write(b"#?RADIANCE\nFORMAT=32-bit_rle_xyze\n\n-Y 1 +X 2\n" + bytes((128, 128, 128, 129)) * 2)
+    with pytest.raises(ValueError, match=r"x\.hdr"):  # OpenImageIO refuses XYZE itself ("no FORMAT specifier")
+        jio.read_image(q)
+
+
+def test_hdr_written_by_write_image_reads_back(tmp_path):
+    img = np.array([[[0.25, 1.0, 3.0], [0.5, 0.125, 8.0]]], np.float32)  # exact in RGBE (powers of two)
+    jio.write_image(tmp_path / "w.hdr", img)
+    np.testing.assert_array_equal(jio.read_image(tmp_path / "w.hdr"), img)
+
+
+@pytest.mark.parametrize("ext", ["tif", "exr"])
+def test_files_of_several_subimages_are_errors(tmp_path, ext):
+    oiio = pytest.importorskip("OpenImageIO")
+    p = str(tmp_path / f"two.{ext}")
+    specs = [oiio.ImageSpec(2, 2, 3, "float"), oiio.ImageSpec(2, 2, 3, "float")]
+    specs[0].attribute("oiio:subimagename", "a")
+    specs[1].attribute("oiio:subimagename", "b")
+    out = oiio.ImageOutput.create(p)
+    assert out.open(p, specs)
+    out.write_image(np.full((2, 2, 3), 1.0, np.float32))
+    assert out.open(p, specs[1], "AppendSubimage")
+    out.write_image(np.full((2, 2, 3), 2.0, np.float32))
+    out.close()
+    for read in (jio.read_image, jio.read_image_info):
+        with pytest.raises(ValueError, match=r"two\.%s.*2 subimages" % ext):
+            read(p)
