@@ -44,8 +44,8 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._jacobian import explicit_jacobian
-from ._normal_equations import (covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared,
-                                solve_sym2, solve_sym2_min_norm)
+from ._normal_equations import (covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared_nonneg,
+                                solve_sym2_min_norm)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
@@ -106,10 +106,13 @@ class BRDFResult(Solution):
 def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     """Weighted LSQ for kd, ks >= 0 given the unit diffuse D and specular S images (N, C).
 
-    Returns kd, ks ((C,) or (T, C)) and a flag for a singular system. Homogeneous and per-texel (kd, ks) are the
-    nonnegative least-squares solutions (`nonneg_sym2`): a `TorranceSparrow` has kd, ks >= 0, and data that an
-    unconstrained solve fits with a negative albedo (negative or offset radiance) get the best physical fit and
-    its residual instead. The shared-ks form (`textured="kd"`) is unconstrained.
+    Returns kd, ks ((C,) or (T, C)) and a flag for a singular system. Every form is the nonnegative least-squares
+    solution (`nonneg_sym2`; `solve_grouped_shared_nonneg` for one shared ks): a `TorranceSparrow` has
+    kd, ks >= 0, and data that an unconstrained solve fits with a negative albedo (negative or offset radiance)
+    get the best physical fit and its residual instead. A singular per-texel system (one sample, a texel in
+    shadow, a specular image that is 0 there) gets the minimum-norm solution, as the homogeneous one: the kd a
+    texel's diffuse samples determine is kept (before, both were set to 0, and the residual of those texels
+    pulled sigma towards values where no specular term underflows).
     """
     wd, ws = w[:, None] * D, w[:, None] * S
     if textured is None:
@@ -124,11 +127,11 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     dd, ds, ss, db, sb = seg(wd * D), seg(wd * S), seg(ws * S), seg(wd * b), seg(ws * b)
     observed = seg(w) > 0
     if textured == "kd_ks":
-        kd, ks, bad = solve_sym2(dd, ds, ss, db, sb)
+        kd, ks, bad = solve_sym2_min_norm(dd, ds, ss, db, sb)
         kd, ks = nonneg_sym2(kd, ks, dd, ss, db, sb)
         return kd, ks, jnp.any(bad & observed[:, None])
-    # textured == "kd": one ks per channel, kd per texel. Eliminate kd_t (Schur complement).
-    kd, ks, bad = solve_grouped_shared(dd, ds, ss, db, sb)
+    # textured == "kd": one ks per channel, kd per texel, both >= 0 (the Schur complement on the active set).
+    kd, ks, bad = solve_grouped_shared_nonneg(dd, ds, ss, db, sb)
     return kd, jnp.broadcast_to(ks, kd.shape), jnp.any(bad)
 
 
@@ -238,8 +241,8 @@ def fit_brdf(
       (default False: check `result.status`).
 
     **Returns:** `BRDFResult`. $K_d, K_s \\ge 0$: at each $(\\mu, \\sigma)$ they are
-    the nonnegative least-squares solution (for `textured="kd"`, the
-    unconstrained one), so data that a negative albedo would fit better
+    the nonnegative least-squares solution (homogeneous, per texel, and with one
+    $K_s$ shared by the texels), so data that a negative albedo would fit better
     (negative or offset radiance) get the best physical fit and its residual.
     Non-convergence and singular inner systems are reported in `status`. $\\mu$ and $\\sigma$ are searched in the box
     `MU_BOUNDS` = [1.001, 10], `SIGMA_BOUNDS` = [1e-3, 1.5] rad: when the data
@@ -464,11 +467,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         if not fresnel:
             J = J.at[:, 0].set(0.0)
         J = J.at[:, 0].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
-        n_par = kd.size + (ks.shape[-1] if textured == "kd" else ks.size) + (2 if fresnel else 1)
-        cov, se2 = covariance_from_jacobian(J, rss, nobs, n_par)
-        # Texel K_d (and K_s) errors, conditional on mu, sigma: diagonal of the per-texel 2x2 inverse.
         D, S = d_fin, s_fin
-        s2 = rss / jnp.maximum(nobs - n_par, 1.0)
 
         def seg(x):
             return jax.ops.segment_sum(x, texel, num_segments=n_texels)
@@ -476,14 +475,30 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         dd = seg(w[:, None] * D * D)
         # samples of positive weight: weight-0 samples (invalid pixels, `pad_observations`' padding) observe nothing
         counts = jax.ops.segment_sum((w > 0).astype(jnp.int32), texel, num_segments=n_texels)
+        # the parameters the samples fit: K_d (and K_s) of the observed texels only (a texel without a sample has
+        # no parameter in the residual; counting all T of them made n - p <= 0 and s2 = RSS, standard errors
+        # ~100x too large, whenever the texels outnumber the samples per texel, e.g. a camera's pixels)
+        seen = jnp.sum((counts > 0).astype(dt))
+        n_par = seen * kd.shape[-1] * (2 if textured == "kd_ks" else 1) + (ks.shape[-1] if textured == "kd" else 0) + (2 if fresnel else 1)
+        cov, se2 = covariance_from_jacobian(J, rss, nobs, n_par)
+        # Texel K_d (and K_s) errors, conditional on mu, sigma: diagonal of the per-texel 2x2 inverse.
+        s2 = rss / jnp.maximum(nobs - n_par, 1.0)
         if textured == "kd_ks":
             ds, ss = seg(w[:, None] * D * S), seg(w[:, None] * S * S)
             v_kd, v_ks, okd = inverse_sym2_diag(dd, ds, ss)
             se_kd = jnp.where(okd, jnp.sqrt(s2 * v_kd), jnp.inf)
             se_ks = jnp.where(okd, jnp.sqrt(s2 * v_ks), jnp.inf)
         else:
-            se_kd = jnp.where(dd > 0, jnp.sqrt(s2 / jnp.where(dd > 0, dd, 1.0)), jnp.inf)
-            se_ks = jnp.full(ks.shape, jnp.nan, dt)
+            # one K_s per channel: its variance is s2 over the Schur complement of the K_d block, and each K_d's
+            # is s2 (1/dd + (ds/dd)^2 / schur) (the inverse of the bordered normal matrix), both given mu, sigma
+            ds = seg(w[:, None] * D * S)
+            has = dd > 0
+            dd_s = jnp.where(has, dd, 1.0)
+            schur = jnp.sum(seg(w[:, None] * S * S), 0) - jnp.sum(jnp.where(has, ds * ds / dd_s, 0.0), 0)
+            okk = schur > 1e3 * jnp.finfo(dt).eps * jnp.sum(seg(w[:, None] * S * S), 0)
+            inv_schur = jnp.where(okk, 1.0 / jnp.where(okk, schur, 1.0), jnp.inf)
+            se_kd = jnp.where(has, jnp.sqrt(s2 * (1.0 / dd_s + (ds / dd_s) ** 2 * inv_schur[None, :])), jnp.inf)
+            se_ks = jnp.broadcast_to(jnp.sqrt(s2 * inv_schur), ks.shape)
         std = TorranceSparrow(se_kd, se_ks, se2[0] if fresnel else None, se2[1])
 
     finite = jnp.isfinite(rss) & jnp.all(jnp.isfinite(kd)) & jnp.isfinite(sigma)

@@ -308,6 +308,11 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         hh, ww = texel.shape
         for key in ("kd",) + (("ks",) if textured == "kd_ks" else ()):
             a = np.where(seen[:, None], np.asarray(getattr(brdf, key)), 0.0).reshape(hh, ww, -1)
+            big = int(np.count_nonzero(~(np.abs(a) <= np.finfo(np.float32).max)))
+            if big:  # a texel's K_s is noise over a vanishing specular term where no view sees a highlight
+                raise ValueError(f"solve.textured {textured!r}: the fitted {key} of {big} pixels is beyond the float32 "
+                                 f"range of {key}.exr: no view sees a highlight there, so their K_s is not determined "
+                                 "by the images (docs/manifest.md, `textured`); use \"kd\" (one K_s) or more views")
             jio.write_image(out(f"{key}.exr"), a, camera=m["views"][0]["camera"])  # the map's camera, for render
             brdf_json[key] = f"{key}.exr"
         if textured == "kd":  # one Ks for all texels (broadcast to (T, C) by the fit)
@@ -324,6 +329,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
     if known is not None or m["brdf"] is None:
         std_json = {k_: (None if textured is not None and np.ndim(getattr(std, k_)) > 1 else _json(getattr(std, k_)))
                     for k_ in ("kd", "ks", "mu", "sigma")}
+        if textured == "kd":  # the one Ks's error (broadcast to (T, C) like the estimate)
+            std_json["ks"] = _json(np.asarray(std.ks).reshape(-1, np.shape(std.ks)[-1])[0])
     result = {
         "brdf": brdf_json,
         "lighting": lighting_json,

@@ -18,9 +18,11 @@ problem of the solvers goes through here:
   of the factorization's Schur complement).
 - `solve_spd_small`, `inverse_spd_small`: Gaussian elimination of
   small SPD systems in plain XLA ops (a rolled pivot loop).
-- `solve_sym2`, `solve_sym2_min_norm`, `nonneg_sym2`, `inverse_sym2_diag`, `solve_grouped_shared`: the $2\\times2$
+- `solve_sym2`, `solve_sym2_min_norm`, `nonneg_sym2`, `inverse_sym2_diag`, `solve_grouped_shared`,
+  `solve_grouped_shared_nonneg`: the $2\\times2$
   $(K_d, K_s)$ eliminations of `fit_brdf` (per channel, per texel, and the
-  Schur complement of one shared $K_s$ with a $K_d$ per texel).
+  Schur complement of one shared $K_s$ with a $K_d$ per texel, unconstrained and nonnegative:
+  Newton steps on its active set in a `while_loop`).
 - `covariance_from_jacobian`: $\\mathrm{cov} = s^2 (J^TJ)^{+}$,
   $s^2 = \\mathrm{RSS}/(n - p)$, with undetermined directions flagged.
 
@@ -29,7 +31,7 @@ calls; inside XLA:CPU loops (`lax.scan`, `while_loop`, the simplex) those
 stalled or deadlocked on re-execution on the development machine (measured),
 and OpenBLAS threads thrashed against XLA's (hence `blas_single_thread`
 around every solver). So the functions called inside searches
-(`solve_spd_small`, `solve_sym2`, `solve_grouped_shared`) are plain
+(`solve_spd_small`, `solve_sym2`, `solve_grouped_shared`, `solve_grouped_shared_nonneg`) are plain
 elementwise/matmul arithmetic; the eigendecompositions (`eig_solve`,
 `pinv_psd`, `covariance_from_jacobian`) run once per solve, outside the
 iterative loops.
@@ -473,4 +475,51 @@ def solve_grouped_shared(dd, ds, ss, db, sb):
     bad = ~(den > 1e3 * jnp.finfo(den.dtype).eps * jnp.sum(ss, 0))
     y = jnp.where(bad, 0.0, num / jnp.where(bad, 1.0, den))
     x = jnp.where(dd > 0, (db - y[None, :] * ds) / dd_s, 0.0)
+    return x, y, bad
+
+
+def solve_grouped_shared_nonneg(dd, ds, ss, db, sb, max_iter: int = 64):
+    """`solve_grouped_shared` with $x_t \\ge 0$, $y \\ge 0$: the nonnegative least-squares solution.
+
+    For a fixed $y$ the best $x_t$ is $\\max(db_t - ds_t y, 0)/dd_t$ (0 for $dd_t = 0$); the objective minimized
+    over the $x_t$ is convex in $y$, with the half-derivative
+    $G(y) = y\\,(\\sum ss - \\sum_{A(y)} c_t) - (\\sum sb - \\sum_{A(y)} a_t)$, $a_t = ds_t\\,db_t/dd_t$,
+    $c_t = ds_t^2/dd_t$, over the active groups $A(y) = \\{t: db_t - ds_t y > 0\\}$. With $ds_t \\ge 0$
+    (nonnegative unit images and weights) groups only leave $A$ as $y$ grows, so $G$ is piecewise linear,
+    increasing and convex, and $G \\ge$ its all-active line, whose root is the unconstrained $y_0$. Newton's
+    method from $y_0$ (each step the root of the current piece) then descends monotonically to the root of $G$
+    and stops, exactly, when the active set repeats (a `while_loop` of elementwise sums, at most `max_iter`
+    steps; usually none or a few); a root below 0 gives $y = 0$. Returns `x (T, C)`, `y (C,)`, `bad (C,)`
+    (a vanishing Schur complement)."""
+    dt = dd.dtype
+    pos = dd > 0
+    dd_s = jnp.where(pos, dd, 1.0)
+    a = jnp.where(pos, ds * db / dd_s, 0.0)
+    c = jnp.where(pos, ds * ds / dd_s, 0.0)
+    s_ss, s_sb = jnp.sum(ss, 0), jnp.sum(sb, 0)
+    tol = 1e3 * jnp.finfo(dt).eps * s_ss
+
+    def piece(act):  # the root of G's line over the active groups `act`
+        den = s_ss - jnp.sum(jnp.where(act, c, 0.0), 0)
+        num = s_sb - jnp.sum(jnp.where(act, a, 0.0), 0)
+        bad = ~(den > tol)
+        return jnp.where(bad, 0.0, num / jnp.where(bad, 1.0, den)), bad
+
+    def active(y):
+        return pos & (db - ds * y[None, :] > 0)
+
+    def cond(state):
+        _, act, prev, _, it = state
+        return jnp.any(act != prev) & (it < max_iter)
+
+    def body(state):
+        y, act, _, bad, it = state
+        y1, bad1 = piece(act)
+        y1 = jnp.where(bad1, y, y1)
+        return y1, active(y1), act, bad | bad1, it + 1
+
+    y0, bad0 = piece(pos)
+    y, _, _, bad, _ = jax.lax.while_loop(cond, body, (y0, active(y0), pos, bad0, jnp.zeros((), jnp.int32)))
+    y = jnp.maximum(y, 0.0)
+    x = jnp.where(pos, jnp.maximum(db - y[None, :] * ds, 0.0) / dd_s, 0.0)
     return x, y, bad
