@@ -264,7 +264,7 @@ def fit_brdf(
     atol = None if atol is None else check_float(atol, "atol")
     if textured not in (None, "kd", "kd_ks"):
         raise ValueError(f"`textured` must be None, 'kd' or 'kd_ks', got {textured!r}")
-    refine = check_refine(refine)
+    refine = check_bool(refine, "refine", none=True)
     if textured is not None and (obs.texel is None or obs.n_texels < 1):
         raise ValueError("`textured` fits need `obs.texel` (pass `texel=` to solvers.observations)")
     dt = obs.values.dtype
@@ -311,13 +311,6 @@ def check_init(init, fresnel: bool) -> tuple[float, float]:
     if fresnel and not MU_BOUNDS[0] <= mu <= MU_BOUNDS[1]:
         raise ValueError(f"`init`: mu must be in [{MU_BOUNDS[0]}, {MU_BOUNDS[1]}] (MU_BOUNDS) with Fresnel, got {mu!r}")
     return mu, sigma
-
-
-def check_refine(refine) -> bool | None:
-    """`fit_brdf`'s and `fit_many`'s `refine`: None, True or False (a `ValueError` naming it otherwise)."""
-    if refine is not None and not isinstance(refine, (bool, np.bool_)):
-        raise ValueError(f"`refine` must be None, True or False, got {refine!r}")
-    return None if refine is None else bool(refine)
 
 
 def _search_samples(weights, m: int):

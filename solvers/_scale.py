@@ -56,9 +56,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 import jaxsh
 
-from ._brdf import BRDFResult, _fit_brdf, check_refine
+from ._brdf import BRDFResult, _fit_brdf
 from ._data import Lighting, Observations, practical_terms_for, view_lightings
-from ._results import check_float, check_int
+from ._results import check_bool, check_float, check_int
 from ._threads import blas_single_thread
 
 _PIXEL_FIELDS = ("normals", "views", "values", "weights", "transfer", "fast_visibility", "reflected_visibility", "texel",
@@ -123,8 +123,7 @@ def pad_observations(obs: Observations, multiple: int = 1, size: int | None = No
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations (see solvers.observations), got {type(obs).__name__}")
     multiple = check_int(multiple, "multiple")
-    if not isinstance(bucket, bool):
-        raise ValueError(f"`bucket` must be True or False, got {bucket!r}")
+    bucket = check_bool(bucket, "bucket")
     if bucket and size is not None:
         raise ValueError("give `size` or `bucket=True`, not both")
     n = obs.n_samples
@@ -316,12 +315,10 @@ def fit_many(
     captures = list(captures)
     if not captures:
         raise ValueError("`captures` is empty: give at least one (obs, lighting) pair")
-    if not isinstance(fresnel, (bool, np.bool_)):
-        raise ValueError(f"`fresnel` must be True or False, got {fresnel!r}")
-    fresnel = bool(fresnel)
+    fresnel = check_bool(fresnel, "fresnel")
     max_steps = check_int(max_steps, "max_steps")
     min_bucket = check_int(min_bucket, "min_bucket")
-    refine = bool(check_refine(refine))  # None: as fit_brdf whose search saw every sample (no refinement)
+    refine = bool(check_bool(refine, "refine", none=True))  # None: as fit_brdf whose search saw every sample (no refinement)
     rtol = None if rtol is None else check_float(rtol, "rtol")
     atol = None if atol is None else check_float(atol, "atol")
     if mesh is not None:
