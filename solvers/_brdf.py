@@ -81,7 +81,13 @@ class BRDFResult(Solution):
       `at_bound`: `{"mu": bool, "sigma": bool}` the parameter stopped at its
       bound of the search box (`MU_BOUNDS`, `SIGMA_BOUNDS`; the data do not
       determine it: its standard error is `inf`), `undetermined`: the same
-      dict, also True where the one-sigma error exceeds $\\mu - 1$ (resp. $\\sigma$).
+      dict, also True where the one-sigma error exceeds $\\mu - 1$ (resp. $\\sigma$);
+      with `textured="kd_ks"` also `"ks"`: `(T, C)` True where a texel's $K_s$
+      is not determined (no sample, or its one-sigma error not below the
+      texture's reflectance level: `_undetermined_texel_ks`). Their values are
+      returned as the least-squares solution gives them, which far from every
+      highlight is noise over a vanishing specular term (up to $10^{55}$
+      measured); `jaxsh fit` writes them as 0 in `ks.exr`.
     """
 
     brdf: TorranceSparrow
@@ -133,6 +139,21 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     # textured == "kd": one ks per channel, kd per texel, both >= 0 (the Schur complement on the active set).
     kd, ks, bad = solve_grouped_shared_nonneg(dd, ds, ss, db, sb)
     return kd, jnp.broadcast_to(ks, kd.shape), jnp.any(bad)
+
+
+def _undetermined_texel_ks(kd, se_ks, seen):
+    """`(T, C)` True where a texel's $K_s$ is not determined by its samples (`fit_brdf(textured="kd_ks")`): the
+    texel has no sample, or the one-sigma error of its $K_s$ is not below the texture's reflectance level, the
+    larger of the texel's own $K_d$ and the median over observed texels (each the largest over the channels).
+    Far from every highlight the specular image is tiny, and the least-squares $K_s$ is noise divided by it
+    (measured: $10^{12}$ at σ = 0.2, $10^{55}$ at σ = 0.1, status `converged`); such a value says nothing about the
+    surface. The rule scales with the images (a brighter capture scales $K_d$, $K_s$ and their errors alike), and
+    keeps a dark texel's well-observed $K_s$ (the median level, not the texel's own $K_d$, bounds it from below).
+    A texture with $K_d = 0$ everywhere has no level, and every $K_s$ is then reported undetermined."""
+    level = jnp.max(kd, -1)
+    ref = jnp.nanmedian(jnp.where(seen, level, jnp.nan))
+    scale = jnp.maximum(level, jnp.where(jnp.isfinite(ref), ref, 0.0))[:, None]
+    return ~seen[:, None] | ~(se_ks < scale)
 
 
 def _model(terms, kd, ks, mu, sigma, texel):
@@ -481,6 +502,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             v_kd, v_ks, okd = inverse_sym2_diag(dd, ds, ss)
             se_kd = jnp.where(okd, jnp.sqrt(s2 * v_kd), jnp.inf)
             se_ks = jnp.where(okd, jnp.sqrt(s2 * v_ks), jnp.inf)
+            und_ks = _undetermined_texel_ks(kd, se_ks, counts > 0)
         else:
             # one K_s per channel: its variance is s2 over the Schur complement of the K_d block, and each K_d's
             # is s2 (1/dd + (ds/dd)^2 / schur) (the inverse of the bordered normal matrix), both given mu, sigma
@@ -514,6 +536,8 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         "mu": bound_mu | (~(std.mu < mu - 1.0) if fresnel else jnp.asarray(False)),
         "sigma": bound_sigma | ~(std.sigma < sigma),
     }
+    if textured == "kd_ks":
+        undetermined["ks"] = und_ks
     n_search = jnp.sum((w > 0).astype(jnp.int32)) if search is None else jnp.asarray(search.shape[0])
     stats = {"num_steps_simplex": steps_nm, "num_steps_lm": steps_lm, "grid_points": jnp.asarray(u_grid.shape[0]),
              "search_pixels": n_search,

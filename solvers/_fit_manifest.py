@@ -307,12 +307,14 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         seen = np.asarray(res.texel_count) > 0
         hh, ww = texel.shape
         for key in ("kd",) + (("ks",) if textured == "kd_ks" else ()):
-            a = np.where(seen[:, None], np.asarray(getattr(brdf, key)), 0.0).reshape(hh, ww, -1)
+            # unobserved texels 0, and with "kd_ks" the texels whose K_s the images do not determine (noise over a
+            # vanishing specular term where no view sees a highlight: up to 1e55, docs/manifest.md, `textured`)
+            keep = seen[:, None] & (~np.asarray(res.stats["undetermined"]["ks"]) if key == "ks" else True)
+            a = np.where(keep, np.asarray(getattr(brdf, key)), 0.0).reshape(hh, ww, -1)
             big = int(np.count_nonzero(~(np.abs(a) <= np.finfo(np.float32).max)))
-            if big:  # a texel's K_s is noise over a vanishing specular term where no view sees a highlight
+            if big:
                 raise ValueError(f"solve.textured {textured!r}: the fitted {key} of {big} pixels is beyond the float32 "
-                                 f"range of {key}.exr: no view sees a highlight there, so their K_s is not determined "
-                                 "by the images (docs/manifest.md, `textured`); use \"kd\" (one K_s) or more views")
+                                 f"range of {key}.exr")
             jio.write_image(out(f"{key}.exr"), a, camera=m["views"][0]["camera"])  # the map's camera, for render
             brdf_json[key] = f"{key}.exr"
         if textured == "kd":  # one Ks for all texels (broadcast to (T, C) by the fit)
@@ -350,7 +352,10 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         result["lighting"]["per_view"] = "views[k].lighting of the manifest (this block: view 0's, or the top-level one)"
     if known is not None:
         result["at_bound"] = {k: bool(v) for k, v in res.stats["at_bound"].items()}
-        result["undetermined"] = {k: bool(v) for k, v in res.stats["undetermined"].items()}
+        und = res.stats["undetermined"]
+        result["undetermined"] = {k: bool(und[k]) for k in ("mu", "sigma")}
+        if "ks" in und:  # per texel and channel ("kd_ks"): the observed pixels' values that ks.exr holds as 0
+            result["undetermined"]["ks_values"] = int(np.count_nonzero(np.asarray(und["ks"])[seen]))
     if m["brdf"] is not None:
         result["lighting"]["std_errors"] = _json(res.std_errors)
         result["lighting"]["supported_lmax"] = [int(x) for x in np.asarray(res.supported_lmax).reshape(-1)]  # ints (results.md)

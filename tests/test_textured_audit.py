@@ -170,3 +170,40 @@ def test_textured_kd_shared_ks_standard_error_is_the_linear_least_squares_one():
     want = np.sqrt(s2 * np.linalg.inv(A.T @ A)[T, T])
     assert np.isfinite(float(r.std_errors.ks[0, c]))
     assert float(r.std_errors.ks[0, c]) == pytest.approx(want, rel=1e-6)
+
+
+def test_textured_kd_ks_flags_the_texels_whose_ks_the_images_do_not_determine():
+    """sigma = 0.2, noise 0.005: far from every highlight the specular image nearly vanishes and the least-squares
+    Ks is noise over it (values beyond 1e6, status converged). `stats["undetermined"]["ks"]` must flag a texel
+    exactly when its Ks's one-sigma error is not below the texture's level. The error is computed here from the
+    NumPy renderer's unit images and the known noise, sqrt(noise^2 [(A^T A)^-1]_ss) per texel, and the level from
+    the true texture. Borderline texels (within 2x of the level) may fall either way. Unflagged texels must be within
+    5 of those errors of the truth. Lighting 1000x dimmer (every estimate and error 1000x larger) must give the
+    same flags."""
+    tex = _texture()
+    noise = 0.005
+    obs, lights, mask, n, v = _capture(tex, noise=noise, seed=2)
+    r = solvers.fit_brdf(obs, lights, textured="kd_ks", fresnel=False)
+    und = np.asarray(r.stats["undetermined"]["ks"]).reshape(N, N, 3)
+    ks = np.asarray(r.brdf.ks).reshape(N, N, 3)
+    dirs = _dirs(6)
+    unit_d = np.stack([_render(n, v, np.ones(3), np.zeros(3), None, SIGMA, d)[..., 0] for d in dirs])
+    unit_s = np.stack([_render(n, v, np.zeros(3), np.ones(3), None, SIGMA, d)[..., 0] for d in dirs])
+    dd, ds, ss = (unit_d * unit_d).sum(0), (unit_d * unit_s).sum(0), (unit_s * unit_s).sum(0)
+    det = dd * ss - ds * ds
+    se_true = np.where(det > 0, noise * np.sqrt(dd / np.where(det > 0, det, 1.0)), np.inf)[..., None]
+    level = np.maximum(tex.max(-1), np.median(tex[mask].max(-1)))[..., None]
+    clear_bad = np.broadcast_to(mask[..., None] & (se_true > 2 * level), ks.shape)
+    clear_good = np.broadcast_to(mask[..., None] & (se_true < level / 2), ks.shape)
+    assert clear_bad[..., 0].sum() > 50 and clear_good[..., 0].sum() > 50  # both kinds in this capture (of 164 texels)
+    assert np.all(und[clear_bad]) and not np.any(und[clear_good])
+    assert np.all(und[~mask])  # unobserved texels
+    assert np.abs(ks[mask]).max() > 1e6  # the values themselves are returned as the least squares give them
+    co = n[..., 2]
+    want = KS * (_fresnel(np.clip(co, 1e-12, 1), MU) / ((MU - 1) / (MU + 1)) ** 2)[..., None]
+    ok = mask[..., None] & ~und
+    assert np.all(np.abs(ks - want)[ok] < 5 * np.broadcast_to(se_true, ks.shape)[ok])
+    dim = [solvers.Lighting(None, lt.fast_directions, lt.fast_energy * 1e-3) for lt in lights]
+    r2 = solvers.fit_brdf(obs, dim, textured="kd_ks", fresnel=False)
+    np.testing.assert_allclose(np.asarray(r2.brdf.kd), 1e3 * np.asarray(r.brdf.kd), rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(r2.stats["undetermined"]["ks"]), np.asarray(r.stats["undetermined"]["ks"]))
