@@ -604,8 +604,9 @@ def factorize(
       on noise-free images of the fitted model under a probe and a sun,
       stage 1 gives $\\mu$ 1.36 for 1.6 and $K_s$ 40 % low. It costs 9
       evaluations of the refinement's search on the subset (`docs/performance.md`).
-      `False`: stage 1's $\\mu$ (R&H's algorithm). Only on the default path
-      (`"sh"`, a search subset whose `MirrorTable` fits); otherwise stage 1's $\\mu$.
+      `False`: stage 1's $\\mu$ (R&H's algorithm). With `lighting_method="sh"`
+      on either path (a `MirrorTable` of the search subset, or direct sums
+      when the subset is too large for one); with `"dual"`, stage 1's $\\mu$.
     - `search_pixels`: the searches use a random subset of this many pixels
       (None: all); the final solve uses all pixels. `key`: PRNG key (default
       `jax.random.PRNGKey(0)`); the subset is NumPy's
@@ -807,6 +808,23 @@ def factorize(
         _, ks, golden_steps = _golden_batch(blocks[0])
         res1, src = _lighting_and_source(blocks[0], ks, lmax, rcond, region_c, True)
         filtered = res1.coeffs
+        stats["num_steps_golden"], stats["n_obs"] = golden_steps, res1.stats["n_obs"]
+        stats["num_steps_bisection"] = src.num_steps
+    elif refine_mu and mu is not None and tab is None and dual is None:
+        # the same search by direct sums (a search subset too large for a `MirrorTable`), then stage 1 and the
+        # source again at the new mu (`_stage1_final`, `find_source`, as above on this path)
+        jt1 = _joint_jit(sub, None, mu, lmax, chunk, rcond, None)
+        column = _source_column(jt1, sub.fast_visibility, mu, ks, src.direction, src.sigma, lmax)
+        t2, c2, n_mu = _joint_mu_search(sub, None, lmax, best, ks, src.direction, src.sigma,
+                                        min(int(max_steps), _MU_JOINT_SIGMA_GRIDS), rtol, atol, rcond, column, chunk)
+        curv_rss = None if c2 is None else c2 * n_pos / sub.n_samples
+        its1 += n_mu
+        stats["num_mu_candidates"] = jax.device_put(its1)
+        mu = jax.device_put(np.asarray(1.0 + np.exp(t2), dt))
+        ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond)
+        blocks = (bl_obs, bl_obs if sub is obs else None)
+        filtered = res1.coeffs
+        src = find_source.__wrapped__(filtered, region=region)
         stats["num_steps_golden"], stats["n_obs"] = golden_steps, res1.stats["n_obs"]
         stats["num_steps_bisection"] = src.num_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
@@ -1104,7 +1122,7 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples)
 
 
-def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column):
+def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column, chunk=None):
     """$t = \\log(\\mu - 1)$ that minimizes the joint model's profiled RSS on the subset (its $(K_s, \\sigma)$
     re-searched at each $\\mu$ by `_refine_search`): 9 values evenly spaced on $[t_1 - w, t_1 + w]$
     (`_MU_JOINT_HALF_WIDTH`, within stage 1's range) around the stage-1 value $t_1$, their blocks in one batch
@@ -1112,19 +1130,24 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
     lighting as $l \\le l^*$ SH only; a bright compact source (a sun) is far from that model, and $\\mu$ then
     absorbs the misfit (measured: $\\mu$ 1.36 for 1.6 on noise-free images, $K_s$ 40 % low, status converged).
     The joint model holds the source as a delta, so its $\\mu$ is not biased that way. Reuses the compiled
-    programs of stage 1 and the refinement (`_mu_blocks`, `_joint_from_table`, `_refine_search`).
+    programs of stage 1 and the refinement (`_mu_blocks`, `_joint_from_table`, `_refine_search`). Without a
+    table (`tab` None: a subset too large for one) each value's blocks and rows come from direct sums over the
+    subset (`_joint_jit`, in chunks of `chunk` pixels), the refinement's program on that path.
     Returns `(t, the profile's curvature in t on the subset or None, evaluations)`."""
-    dt = tab.b.dtype
+    dt = sub.values.dtype
     lo = max(t1 - _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[0])
     hi = min(t1 + _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[1])
     ts = np.linspace(lo, hi, 9)
-    bl = _mu_blocks(tab, jax.device_put((1.0 + np.exp(ts)).astype(dt)), lmax, rcond)
+    bl = None if tab is None else _mu_blocks(tab, jax.device_put((1.0 + np.exp(ts)).astype(dt)), lmax, rcond)
     vals = []
     for k, t in enumerate(ts):
         mu = jax.device_put(np.asarray(1.0 + np.exp(t), dt))
-        jt = _joint_from_table(sub, tab, bl, mu, lmax, jax.device_put(np.int32(k)))
-        if column is not None:
-            jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
+        if tab is None:
+            jt = _joint_jit(sub, None, mu, lmax, chunk, rcond, column)
+        else:
+            jt = _joint_from_table(sub, tab, bl, mu, lmax, jax.device_put(np.int32(k)))
+            if column is not None:
+                jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
         vals.append(float(_refine_search(jt, mu, ks0, d, sigma0, lmax, *_limits(max_steps, rtol, atol))[4]))
     vals = np.where(np.isfinite(vals), vals, np.inf)
     if not np.any(np.isfinite(vals)):

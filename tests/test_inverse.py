@@ -420,7 +420,7 @@ def test_golden_ks_rss_from_fixed_parts_equals_the_dense_least_squares(rng):
 def test_factorize_from_the_table_equals_the_direct_sums_end_to_end(obs_noisy, monkeypatch):
     # a capture smaller than `search_pixels`: the table of all pixels serves the mu search, the final stage-1
     # blocks and the refinement's rows; the reference forms them all by direct sums. Stage 1's mu on both paths
-    # (`refine_mu=False`: the joint model's mu search runs on the table path only)
+    # (`refine_mu=False`: the joint model's mu searches of the two paths differ in their rounding)
     from solvers import _factorize as F
 
     assert obs_noisy.n_samples < 40000
@@ -810,12 +810,19 @@ def test_fit_brdf_sh_solves_the_linear_system_of_eqs_9_10(rng):
         solvers.fit_brdf_sh(solvers.observations(gbs, imgs), L[:4], lmax)
 
 
-def test_factorize_searches_mu_again_on_the_joint_model():
+@pytest.mark.parametrize("path", ["table", "direct"])
+def test_factorize_searches_mu_again_on_the_joint_model(path, monkeypatch):
     """A sphere under smooth lighting plus a sun, noise-free images of the factorization's own model (slow SH to
     l = 6 plus a directional source), grazing pixels masked. Stage 1 models the lighting as SH only, and the sun's
     misfit moves its mu: without `refine_mu` (R&H's algorithm) mu 1.49 for 1.6, K_s 5-7 % low, and a standard error
     of mu (0.0008) 140 times smaller than its error. With it (the default) the joint model's mu: K_s, mu, sigma
-    within 0.3 %, 0.2 %, 0.5 % (measured), and the truth within 3 standard errors."""
+    within 0.3 %, 0.2 %, 0.5 % (measured), and the truth within 3 standard errors. On both paths: the search
+    subset's `MirrorTable`, and direct sums (a subset too large for a table; forced here by a zero table budget),
+    which used to keep stage 1's mu."""
+    from solvers import _factorize as F
+
+    if path == "direct":
+        monkeypatch.setattr(F, "_TABLE_BYTES", 0)
     rng = np.random.default_rng(1)
     sh = rng.normal(size=(jaxsh.num_coeffs(6), 3)) * 0.08
     sh[0] = [1.2, 1.1, 1.0]
