@@ -280,7 +280,9 @@ def look_at(
     $\\begin{pmatrix} x & y & z & \\text{eye} \\\\ 0 & 0 & 0 & 1\\end{pmatrix}$,
     a proper rotation. So the target is imaged at the principal point and
     `up` points up in the image. When `up` is parallel to the viewing
-    direction another world axis (the one least aligned with $z$) is used.
+    direction (within $\\sqrt{\\epsilon}$ of the dtype: 3.5e-4 rad in float32,
+    1.5e-8 in float64) another world axis (the one least aligned with $z$)
+    is used.
 
     **Arguments:** `eye`, `target`, `up`: `(..., 3)` (broadcast; traced,
     differentiable). `up` defaults to world +z; it is a direction and need
@@ -324,14 +326,16 @@ def _look_at(eye, target, up):
     x = jnp.cross(z, up)
     nx = jnp.linalg.norm(x, axis=-1, keepdims=True)
     nup = jnp.linalg.norm(up, axis=-1, keepdims=True)
-    degenerate = nx <= 1e-9 * nup
-    # fallback up: the world axis least aligned with z
+    # `up` within sqrt(eps) of the viewing direction: z x up is mostly rounding (in float32, up = (1, 2, 3) along z
+    # gave a matrix 1 % from a rotation with the former 1e-9 test); the fallback up is the world axis least aligned
+    # with z
+    degenerate = nx <= float(np.sqrt(np.finfo(z.dtype).eps)) * nup
     k = jnp.argmin(jnp.abs(z), axis=-1)
     alt = jax.nn.one_hot(k, 3, dtype=z.dtype)
     x_alt = jnp.cross(z, alt)
     x = jnp.where(degenerate, x_alt, x)
-    nx = jnp.linalg.norm(x, axis=-1, keepdims=True)
-    x = x / nx
+    x = x - jnp.sum(x * z, axis=-1, keepdims=True) * z  # orthogonal to z to rounding, whatever the angle to up
+    x = x / jnp.linalg.norm(x, axis=-1, keepdims=True)
     y = jnp.cross(z, x)
     rot = jnp.stack([x, y, z], axis=-1)
     top = jnp.concatenate([rot, eye[..., :, None]], axis=-1)

@@ -96,6 +96,29 @@ def test_look_at_puts_target_at_image_centre(rng):
     np.testing.assert_allclose(md[:3, 2], [0, 0, -1], atol=1e-15)
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-7, 1e-6, 1e-5, 1e-3, 0.1])
+def test_look_at_float32_up_nearly_along_the_view_is_a_rotation(angle):
+    """`up` = (1, 2, 3)/sqrt(14) at `angle` from the viewing direction, float32. The former test of parallelism
+    (1e-9 relative) let rounding through: a matrix 1 % from a rotation, which `PinholeCamera` refused. Checked here:
+    R^T R = I and det R = 1 to float32 rounding, the forward axis is (target - eye) normalized, and above the
+    fallback's threshold (sqrt(eps) = 3.5e-4) up is image up."""
+    a = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+    b = unit(np.cross(a, [1.0, 0.0, 0.0]))
+    up = np.cos(angle) * a + np.sin(angle) * b
+    eye = np.float32(5.0) * a.astype(np.float32)
+    m = np.asarray(jaxsh.look_at(eye, np.zeros(3, np.float32), up.astype(np.float32)))
+    assert m.dtype == np.float32
+    rot = m[:3, :3].astype(np.float64)
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-6)
+    assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-6)
+    np.testing.assert_allclose(rot[:, 2], -a, atol=1e-6)
+    if angle > 1e-3:
+        # y (image down) is -(up's component orthogonal to z), normalized
+        perp = up - (up @ rot[:, 2]) * rot[:, 2]
+        np.testing.assert_allclose(rot[:, 1], -unit(perp), atol=1e-4)
+    jaxsh.PinholeCamera(np.float32(40.0), np.float32(40.0), np.float32(8.0), np.float32(8.0), 16, 16, m)
+
+
 def test_orthographic_rays(rng):
     rot = random_rotation(rng)
     t = rng.normal(size=3)
@@ -375,6 +398,47 @@ def test_embree_and_numpy_engines_agree():
     te = jaxsh.visibility_sh(box, pts, nrm, 2, n_dirs=64, engine="embree")
     tn = jaxsh.visibility_sh(box, pts, nrm, 2, n_dirs=64, engine="numpy")
     np.testing.assert_allclose(te, tn, atol=1e-12)
+
+
+@pytest.mark.parametrize("engine", ["auto", "numpy"])
+@pytest.mark.parametrize("offset", [0.0, 3e4, 1e5])
+def test_visibility_of_a_convex_mesh_far_from_the_origin(engine, offset):
+    """A unit box moved to `offset` (a georeferenced scan's coordinates): on a convex object nothing is occluded.
+    trimesh's embree path rounds ray origins to float32 in world coordinates; at 3e4 the origins x + eps n fell
+    below the surface and every term read 0 (visible fraction 0.000, reflected visibility 0.455 at 1e5). The
+    G-buffer's hits are the box's faces (analytic), the same at every offset."""
+    c = np.array([1.0, 0.7, 0.3]) * offset
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    box.apply_translation(c)
+    g = np.linspace(-0.4, 0.4, 5)
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    pts = np.stack([gx.ravel(), gy.ravel(), np.full(25, 0.5)], -1) + c
+    nrm = np.broadcast_to([0.0, 0.0, 1.0], pts.shape)
+    dirs = unit(np.random.default_rng(0).normal(size=(32, 3)) * [1, 1, 0] + [0, 0, 1.2])
+    assert np.all(np.asarray(jaxsh.directional_visibility(box, pts, nrm, dirs, engine=engine)) == 1.0)
+    t = np.asarray(jaxsh.visibility_sh(box, pts[:4], nrm[:4], 0, n_dirs=64, engine=engine))
+    np.testing.assert_allclose(t[:, 0], np.pi * 0.5 / np.sqrt(np.pi), rtol=1e-2)  # open hemisphere: A_0 Y_00
+    cam = jaxsh.OrthographicCamera(0.1, 12, 12, pose(np.eye(3), c + [0.0, 0.0, -3.0]))  # looks up at the bottom face
+    gb = jaxsh.mesh_gbuffer(cam, box, smooth=False, engine=engine)
+    mask = np.asarray(gb.mask)
+    assert mask.sum() == 100  # 10 x 10 pixels of 0.1 cover the unit face
+    np.testing.assert_allclose(np.asarray(gb.position)[mask][:, 2], c[2] - 0.5, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(gb.normal)[mask], np.broadcast_to([0.0, 0.0, -1.0], (100, 3)), atol=1e-12)
+    rv = np.asarray(jaxsh.reflected_visibility(box, np.asarray(gb.position)[mask], np.asarray(gb.normal)[mask],
+                                               np.asarray(gb.view)[mask], engine=engine))
+    assert np.all(rv == 1.0)
+
+
+def test_triangle_engine_does_not_shadow_a_small_object_with_its_own_face():
+    """trimesh's ray_triangle counts hits up to 1e-6 behind a ray's origin: with eps < 1e-6 (the default for an
+    object under ~6 mm in metres) a point's own face shadowed it (visible fraction 0.5 on a convex 1 mm box).
+    Needs rtree (not a dependency: skipped where it is missing)."""
+    pytest.importorskip("rtree")
+    box = trimesh.creation.box(extents=(1e-3, 1e-3, 1e-3))
+    pts = np.stack([np.linspace(-4e-4, 4e-4, 9), np.zeros(9), np.full(9, 5e-4)], -1)
+    nrm = np.broadcast_to([0.0, 0.0, 1.0], pts.shape)
+    dirs = unit(np.random.default_rng(0).normal(size=(32, 3)) * [1, 1, 0] + [0, 0, 1.2])
+    assert np.all(np.asarray(jaxsh.directional_visibility(box, pts, nrm, dirs, engine="triangle")) == 1.0)
 
 
 def test_triangle_engine_needs_rtree_or_agrees():
