@@ -848,7 +848,8 @@ def read_envmap(
     - `encoding`: for 8/16-bit integer files only, as `read_image` (required there).
 
     An alpha channel is dropped if it is opaque everywhere and is an error
-    otherwise (a map has radiance in every direction).
+    otherwise (a map has radiance in every direction). The colour channels must
+    be 1 (grey) or 3 (RGB); any other count is an error.
 
     A `"+y"` lat-long file whose width is a multiple of 4 and whose size is
     kept is remapped exactly (a column permutation); otherwise the map is
@@ -874,6 +875,9 @@ def read_envmap(
     img = _decode(img, _check_encoding(path, encoding, info), info["alpha_channel"])
     img = _drop_opaque_alpha(img, info, f"environment map {path!r} has an alpha channel that is not opaque "
                              "everywhere: an environment map is radiance from every direction; remove the alpha channel")
+    if img.shape[-1] not in (1, 3):
+        raise ValueError(f"environment map {path!r} has {img.shape[-1]} colour channels: it must be grey (1) or RGB "
+                         "(3), with or without an alpha channel")
     fh, fw = img.shape[:2]
     if layout == "latlong":
         if fw != 2 * fh:
@@ -1062,6 +1066,15 @@ def _lighting(r: _Reader, v, where: str):
         if layout == "angular" and fw != fh:
             raise r.err(f"{where}.envmap", f"is a {fw}x{fh} image but an angular map (`{where}.layout` \"angular\") "
                                            f"must be square: {env}")
+    if env is not None:
+        colours = info["channels"] - int(info["alpha"])
+        if colours not in (1, 3):
+            raise r.err(f"{where}.envmap", f"has {colours} colour channels{' besides alpha' if info['alpha'] else ''}: "
+                                           f"an environment map is grey (1) or RGB (3): {env}")
+    elif any(v.get(k) is not None for k in ("up", "layout", "encoding")):
+        k = next(k for k in ("up", "layout", "encoding") if v.get(k) is not None)
+        raise r.err(f"{where}.{k}", "describes an `envmap`; there is none (`directional` sources are given in the world "
+                                    "frame, in linear radiance)")
     rot = None
     if v.get("rotation") is not None:
         if env is None:

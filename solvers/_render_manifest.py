@@ -74,6 +74,10 @@ def lighting_from_block(lit: dict, sigma: float, lmax: int | None = None, *, man
         env = env.astype(np.float64)
         h = env.shape[0]
         if lmax is None:
+            if h < 2:
+                raise jio.ManifestError(
+                    f"{manifest}: `{field}` is {h} row high as a lat-long map (an angular map: half its size): too small "
+                    f"for the default cut-off min(ceil(4/sigma), H/2 - 1) = -1; set `solve.render_lmax`: {lit['envmap']}")
             lmax = int(min(math.ceil(4.0 / sigma), h // 2 - 1))
         slow = jaxsh.project_latlong(env[..., :3], lmax)
         if lit.get("rotation") is not None:  # map frame -> world: the world's lighting is L(R^T w)
@@ -263,7 +267,7 @@ def check_outputs(m: dict, out_dir, names) -> list[str]:
 
 
 # The names of the files `jaxsh fit` and `jaxsh render` write into `--out`
-_OUTPUT_NAME = re.compile(r"view_\d{3}\.(exr|png)|result\.json|lighting\.(exr|png)|brdf_rbf\.npz|k[ds]\.exr")
+_OUTPUT_NAME = re.compile(r"view_\d{3,}\.(exr|png)|result\.json|lighting\.(exr|png)|brdf_rbf\.npz|k[ds]\.exr")
 
 
 def stale_outputs(out_dir, written) -> list[str]:
@@ -342,10 +346,13 @@ def render_rbf_view(b: dict, g, fd, fe, fast_visibility=None) -> np.ndarray:
     rbf = b["rbf"]
     mask = np.asarray(g.mask)
     xy = pixel_xy(rbf["width"], rbf["height"]) if rbf["spatial"] else None
-    img = np.zeros(mask.shape + (int(rbf["model"].weights.shape[1]),))
+    w = rbf["model"].weights
+    c = int(w.shape[1]) if w.ndim == 2 else 1
+    # a one-channel (grey) model under RGB sources renders RGB (`render_rbf` broadcasts it)
+    img = np.zeros(mask.shape + (3 if c == 1 and fe is not None and np.shape(fe)[-1] == 3 else c,))
     for j in range(0 if fd is None else len(fd)):
         vis = mask if fast_visibility is None else mask & (np.asarray(fast_visibility)[..., j] > 0.5)
-        img += np.asarray(render_rbf(rbf["model"], g.normal, g.view, fd[j], fe[j], mask=vis, xy=xy))
+        img += np.asarray(render_rbf(rbf["model"], g.normal, g.view, fd[j], fe[j], mask=vis, xy=xy)).reshape(img.shape)
     return img
 
 

@@ -1126,7 +1126,8 @@ def render_rbf(model: jaxsh.RBFModel, normal, view, light, irradiance=1.0, mask=
     `jaxsh.io.read_rbf`. Arguments as `RBFReflectance.render`: `normal`
     `(H, W, 3)`, `view` and `light` `(3,)` or `(H, W, 3)` (towards the camera
     / the light; all three are directions, normalized here as in
-    `reflectance_samples`; a zero one is not rendered), `irradiance` scalar or `(C,)`.
+    `reflectance_samples`; a zero one is not rendered), `irradiance` scalar or `(C,)`
+    (a one-channel model under a `(C,)` irradiance gives C channels).
     """
     d = int(model.centers.shape[1])
     if d not in (3, 5):
@@ -1142,7 +1143,11 @@ def render_rbf(model: jaxsh.RBFModel, normal, view, light, irradiance=1.0, mask=
     scale = jnp.where(ok, cos, 0.0)
     if f.ndim == len(shape):
         return f * scale * e
-    e = jnp.broadcast_to(e, f.shape[-1:]).reshape((1,) * len(shape) + f.shape[-1:])  # scalar or (C,)
+    try:  # scalar or (C,); a one-channel (grey) model under coloured light gives C channels
+        cs = jnp.broadcast_shapes(f.shape[-1:], jnp.shape(e))
+    except ValueError:
+        raise ValueError(f"`irradiance` {jnp.shape(e)} does not match the model's {f.shape[-1]} channels") from None
+    e = jnp.broadcast_to(e, cs).reshape((1,) * len(shape) + cs)
     return f * scale[..., None] * e
 
 

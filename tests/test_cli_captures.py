@@ -327,6 +327,17 @@ def test_rbf_brdf_renders_under_directional_sources_only(capture, capsys):
     got = np.asarray(jaxsh.io.read_image(root / "dir_out" / "view_000.exr"))[..., :3]
     want = 0.1 * 2.0 * np.maximum(np.asarray(g.normal)[..., 2], 0)[..., None] * np.asarray(g.mask)[..., None]
     np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=1e-6)
+    # a grey (one-channel) model, as a fit of grey images writes it, under an RGB source renders RGB: f L cos(theta_i)
+    # (it stopped with "Incompatible types for broadcasting", naming no field)
+    grey = jaxsh.RBFModel(np.random.default_rng(0).normal(size=(8, 3)), np.zeros((8, 1)), poly[:, :1])
+    jaxsh.io.write_rbf(root / "grey.npz", grey, spatial=False)
+    m["brdf"] = {"model": "rbf", "file": "grey.npz"}
+    m["lighting"] = {"directional": [{"direction": [0, 0, 1], "radiance": [1.0, 2.0, 0.5]}]}
+    (root / "grey_rbf.json").write_text(json.dumps(m))
+    assert main(["render", str(root / "grey_rbf.json"), "--out", str(root / "grey_out")]) == 0
+    got = np.asarray(jaxsh.io.read_image(root / "grey_out" / "view_000.exr"))[..., :3]
+    want = 0.1 * np.array([1.0, 2.0, 0.5]) * (np.maximum(np.asarray(g.normal)[..., 2], 0) * np.asarray(g.mask))[..., None]
+    np.testing.assert_allclose(got, want, atol=1e-6)
 
 
 def test_rbf_file_round_trip_and_errors(tmp_path):

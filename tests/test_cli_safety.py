@@ -148,6 +148,11 @@ def test_files_of_an_earlier_run_are_named_not_deleted(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "also holds 2 file(s) of an earlier run that this run did not write: view_001.exr, view_001.png" in err
     assert sorted(os.listdir(out)) == ["notes.txt", "view_000.exr", "view_000.png", "view_001.exr", "view_001.png"]
+    (out / "view_1000.exr").write_text("x")  # a capture of more than 1,000 views: names keep all digits
+    (out / "view_01.exr").write_text("x")  # not an output name (3 digits at least)
+    assert main(["render", str(p), "--out", str(out)]) == 0
+    assert ("3 file(s) of an earlier run that this run did not write: view_001.exr, view_001.png, view_1000.exr"
+            in capsys.readouterr().err)
 
 
 def test_fit_names_the_files_of_an_earlier_run(tmp_path, capsys):

@@ -6,6 +6,7 @@ encoding written out here, and directions from the formulas of docs/conventions.
 
 import json
 import os
+import re
 import warnings
 
 import jax
@@ -307,3 +308,69 @@ def test_files_of_several_subimages_are_errors(tmp_path, ext):
     for read in (jio.read_image, jio.read_image_info):
         with pytest.raises(ValueError, match=r"two\.%s.*2 subimages" % ext):
             read(p)
+
+
+def _write_raw(path, arr, channel_names=None):
+    """A float EXR written through OpenImageIO directly (channel names given, so no channel is taken as alpha)."""
+    import OpenImageIO as oiio
+
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, "float")
+    if channel_names is not None:
+        spec.channelnames = tuple(channel_names)
+        spec.alpha_channel = -1
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec)
+    assert out.write_image(np.ascontiguousarray(arr, np.float32))
+    out.close()
+
+
+_CAM = {"model": "orthographic", "scale": 0.5, "width": 4, "height": 4,
+        "cam_to_world": [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]]}
+
+
+def _render_manifest(tmp_path, lighting, **solve):
+    m = {"geometry": {"sphere": {"center": [0, 0, 0], "radius": 1}}, "views": [{"camera": _CAM}], "lighting": lighting,
+         "brdf": {"model": "torrance_sparrow", "kd": 0.5, "ks": 0.1, "mu": None, "sigma": 0.2},
+         **({"solve": solve} if solve else {})}
+    (tmp_path / "m.json").write_text(json.dumps(m))
+    return tmp_path / "m.json"
+
+
+@pytest.mark.parametrize("names", [("R", "G"), ("R", "G", "B", "X"), ("R", "G", "B", "X", "Y")])
+def test_envmap_colour_channels_must_be_grey_or_rgb(tmp_path, names):
+    """An environment map of 2, 4 or 5 colour channels (no alpha): the manifest reader and `read_envmap` refuse it,
+    naming the file and `lighting.envmap`. (Before: R, G gave a channel-mismatch error naming nothing, and extra
+    channels were dropped without a word.)"""
+    _write_raw(tmp_path / "env.exr", np.full((4, 8, len(names)), 0.5), names)
+    with pytest.raises(ValueError, match=rf"env\.exr.* has {len(names)} colour channels"):
+        jio.read_envmap(tmp_path / "env.exr")
+    p = _render_manifest(tmp_path, {"envmap": "env.exr"})
+    with pytest.raises(jio.ManifestError, match=rf"m\.json: `lighting\.envmap` has {len(names)} colour channels.*env\.exr"):
+        jio.read_manifest(p)
+
+
+@pytest.mark.parametrize("field, value", [("up", "+y"), ("layout", "angular"), ("encoding", "srgb")])
+def test_envmap_fields_without_an_envmap_are_errors(tmp_path, field, value):
+    """`up`, `layout`, `encoding` describe an envmap: given with `directional` sources only they were ignored (a user
+    writing up "+y" for their source directions got them unconverted); now an error naming the field, as `rotation`."""
+    p = _render_manifest(tmp_path, {"directional": [{"direction": [0, 0, 1], "radiance": 1.0}], field: value})
+    with pytest.raises(jio.ManifestError, match=rf"m\.json: `lighting\.{field}` describes an `envmap`; there is none"):
+        jio.read_manifest(p)
+
+
+def test_render_of_a_map_too_small_for_the_default_cut_off_names_the_field(tmp_path, capsys):
+    """A 2 x 1 lat-long map: the default cut-off min(ceil(4/sigma), H/2 - 1) is -1. `jaxsh render` stops with an
+    error naming the manifest, `lighting.envmap` and `solve.render_lmax` (was "`lmax` must be a non-negative int,
+    got -1"); with `render_lmax` 0 the map renders, a pixel facing it at least pi * mean * kd (closed form: the
+    irradiance of a constant map, plus a non-negative specular term)."""
+    from solvers.cli import main
+
+    _write_raw(tmp_path / "env.exr", np.full((1, 2, 3), 0.25))
+    p = _render_manifest(tmp_path, {"envmap": "env.exr"})
+    assert main(["render", str(p), "--out", str(tmp_path / "out")]) == 2
+    assert re.search(r"m\.json: `lighting\.envmap` is 1 row high .*`solve\.render_lmax`", capsys.readouterr().err)
+    p = _render_manifest(tmp_path, {"envmap": "env.exr"}, render_lmax=0)
+    assert main(["render", str(p), "--out", str(tmp_path / "out0")]) == 0
+    img = np.asarray(jio.read_image(tmp_path / "out0" / "view_000.exr"))
+    assert img[1:3, 1:3, 0].min() > np.pi * 0.25 * 0.5 * 0.999
