@@ -31,7 +31,7 @@ from ._data import Lighting, Observations, view_lightings
 def _is_number_list(x) -> bool:
     """A nested list of numbers (an SH array given as lists), not a sequence of `Lighting`."""
     return isinstance(x, (list, tuple)) and len(x) > 0 and not isinstance(x[0], Lighting)
-from ._results import Solution, Status, check_int, finish, rms_pair, signal_status, worst
+from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 
@@ -46,7 +46,8 @@ class BRDFSHResult(Solution):
       `n_unknowns` is reported by `rank`, the solution being minimum-norm).
     - `iterations`: 0 (a direct solve); `rms`, `rel_rms` (never NaN).
     - `stats`: `singular_values` `(C, n_unknowns)` of the design matrix
-      (descending), `n_obs` (weighted samples × channels).
+      (descending; zero-padded when there are fewer samples than unknowns),
+      `n_obs` (weighted samples × channels).
     """
 
     rho: Float[Array, "l p q C"]
@@ -112,7 +113,7 @@ def fit_brdf_sh(
     (all of it, as SH to `lmax`: `Lighting.total_sh`), or a sequence of one
     `Lighting` per view of `obs` (`obs.view_index`; each view's design rows use
     its own lighting, memory $O(N)$); `lmax` static;
-    `rcond` for the SVD (default 1e-10 in float64, 1e-5 in float32);
+    `rcond` for the SVD, a finite number >= 0 (default 1e-10 in float64, 1e-5 in float32);
     `throw`: raise `solvers.SolveError` unless the status is `converged`.
     """
     if not isinstance(obs, Observations):
@@ -120,8 +121,10 @@ def fit_brdf_sh(
     if obs.transfer is not None or obs.reflected_visibility is not None:
         raise ValueError("fit_brdf_sh: the SH light-field model (eqs. 9, 10) has no shadowing; use a convex object")
     lmax = check_int(lmax, "lmax", lo=0)
+    rcond = None if rcond is None else check_float(rcond, "rcond")
     n = jaxsh.num_coeffs(lmax)
-    lights = view_lightings(obs, lighting_sh, "lighting_sh") if not isinstance(lighting_sh, (Lighting, jax.Array, np.ndarray)) and not _is_number_list(lighting_sh) else None
+    # disks are fine here: each view's lighting enters as `total_sh` (disks in closed form), no sigma to split by
+    lights = view_lightings(obs, lighting_sh, "lighting_sh", allow_disks=True) if not isinstance(lighting_sh, (Lighting, jax.Array, np.ndarray)) and not _is_number_list(lighting_sh) else None
     if isinstance(lighting_sh, Lighting):
         lighting_sh = lighting_sh.total_sh(lmax)
     if lights is not None:
@@ -165,7 +168,8 @@ def _fit_brdf_sh(obs, L, lmax, cols, rcond):
         keep = s > rcond * s[0]
         x = vt.T @ (jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0) * (u.T @ (sw * b)))
         r = a @ x - sw * b
-        return x, jnp.sum(keep), jnp.sum(r * r), s
+        # (n_unknowns,) whatever the pixel count: the SVD gives min(N, n_unknowns) values, the rest are 0
+        return x, jnp.sum(keep), jnp.sum(r * r), jnp.pad(s, (0, cols.shape[0] - s.shape[0]))
 
     x, rank, rss, sv = jax.vmap(channel, in_axes=(2 if per_view else 1, 1))(lc, obs.values)
     c = L.shape[-1]

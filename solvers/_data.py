@@ -234,11 +234,12 @@ def observations(
     )
 
 
-def view_lightings(obs: Observations, lighting, name: str = "lighting") -> list[Lighting] | None:
+def view_lightings(obs: Observations, lighting, name: str = "lighting", allow_disks: bool = False) -> list[Lighting] | None:
     """`None` for one `Lighting`; for a sequence, the list of one `Lighting` per view of `obs`, checked.
 
     The sequence must have `len(obs.image_shapes)` entries (one per view,
-    indexed by `obs.view_index`), each a `Lighting` without disk sources,
+    indexed by `obs.view_index`), each a `Lighting` without disk sources
+    (unless `allow_disks`: a caller that uses each lighting as `total_sh`),
     with `C` or 1 channels. Raises `ValueError` naming `name`.
     """
     if isinstance(lighting, Lighting):
@@ -254,7 +255,7 @@ def view_lightings(obs: Observations, lighting, name: str = "lighting") -> list[
     for k, lit in enumerate(lights):
         if not isinstance(lit, Lighting):
             raise ValueError(f"`{name}[{k}]` must be a solvers.Lighting, got {type(lit).__name__}")
-        if lit.has_disks:
+        if lit.has_disks and not allow_disks:
             raise ValueError(f"`{name}[{k}]` has disk sources: split them first (`Lighting.split_disks(sigma, lmax)`)")
     c = max(lit.n_channels for lit in lights)
     for k, lit in enumerate(lights):

@@ -180,7 +180,7 @@ def rms_pair(rss, data_ss, count) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """`(rms, rel_rms)` from a residual sum of squares, the data's sum of squares and the sample count.
 
     `rms = sqrt(rss / count)` (0 for `count == 0`); `rel_rms = rms / data_rms`
-    with `0/0 = 0` and `x/0 = inf`: never NaN unless `rss` itself is NaN.
+    with `0/0 = 0` and `x/0 = inf`: never NaN unless `rss` or `data_ss` is NaN (then NaN, not 0).
     """
     rss = jnp.asarray(rss)
     data_ss = jnp.asarray(data_ss, rss.dtype)
@@ -189,6 +189,7 @@ def rms_pair(rss, data_ss, count) -> tuple[Float[Array, ""], Float[Array, ""]]:
     rms = jnp.where(count > 0, jnp.sqrt(jnp.maximum(rss, 0) / safe), 0)
     drms = jnp.where(count > 0, jnp.sqrt(jnp.maximum(data_ss, 0) / safe), 0)
     rel = jnp.where(drms > 0, rms / jnp.where(drms > 0, drms, 1), jnp.where(rms > 0, jnp.inf, 0))
+    rel = jnp.where(jnp.isnan(rms) | jnp.isnan(drms), jnp.nan, rel)  # a NaN residual is no perfect fit
     return rms, rel.astype(rms.dtype)
 
 
