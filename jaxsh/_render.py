@@ -186,7 +186,7 @@ def render_practical(
 
     **Arguments:**
 
-    - `normals`, `views`: unit vectors `(..., 3)`; views point towards the camera.
+    - `normals`, `views`: directions `(..., 3)`, normalized here; views point towards the camera.
     - `brdf`: a `jaxsh.TorranceSparrow`: `kd`, `ks` `(C,)` or `(..., C)`
       (textures over the pixels), R&H's $K_d$ (ρ = Kd + ...); `mu` relative
       index (None: F = 1); `sigma` roughness (radians). Traced.
@@ -237,7 +237,8 @@ def render_practical(
     kd = _channels(brdf.kd, "kd")
     ks = _channels(brdf.ks, "ks")
     _check_channels(_brdf_channels(kd, ks) + _lighting_channels(lighting))
-    dt = jnp.result_type(normals.dtype, views.dtype, kd.dtype, ks.dtype)
+    # on the arrays, not their dtypes: a Python scalar's weak type must not widen float32 geometry (conventions.md)
+    dt = jnp.result_type(normals, views, kd, ks)
     n = jnp.broadcast_to(normals, batch + (3,)).astype(dt).reshape(-1, 3)
     v = jnp.broadcast_to(views, batch + (3,)).astype(dt).reshape(-1, 3)
     kd = _texture(kd.astype(dt), batch, "kd")
@@ -384,13 +385,21 @@ def _reference_lighting(lighting, light_kw) -> Lighting | None:
         parts.update(
             disk_directions=ddir,
             disk_radius=as_float_array(drad, "disks[1]").reshape(-1),
-            disk_radiance=as_float_array(dl, "disks[2]").reshape(ddir.shape[0], -1),
+            disk_radiance=_per_source(dl, ddir.shape[0], "disks[2]"),
         )
     if directional is not None:
         jd, je = directional
         jd = check_dirs(jd, "directional[0]").reshape(-1, 3)
-        parts.update(fast_directions=jd, fast_energy=as_float_array(je, "directional[1]").reshape(jd.shape[0], -1))
+        parts.update(fast_directions=jd, fast_energy=_per_source(je, jd.shape[0], "directional[1]"))
     return Lighting(**parts)
+
+
+def _per_source(x, j: int, name: str):
+    """A keyword form's radiance for `j` sources: a scalar (every source, one channel) or as given, `(J,)` or
+    `(J, C)`, for `Lighting`'s shape check (a reshape to `(J, -1)` here used to turn an energy `(2, 3)` of one
+    source into 6 channels, and an RGB `(1, 3)` of three sources into one scalar each)."""
+    x = as_float_array(x, name)
+    return jnp.broadcast_to(x, (j,)) if x.ndim == 0 else x
 
 
 def render_reference(
@@ -428,8 +437,8 @@ def render_reference(
 
     **Arguments:**
 
-    - `normals`, `views`, `brdf`: as `render_practical`; zero normals or views (a
-      G-buffer's misses) render as 0, NaN/inf is a `ValueError`.
+    - `normals`, `views`, `brdf`: as `render_practical` (normalized here); zero
+      normals or views (a G-buffer's misses) render as 0, NaN/inf is a `ValueError`.
     - `lighting`: a `jaxsh.Lighting` with fast sources (exact) and/or disks
       (quadrature), and no `slow_sh` (SH lighting is not integrated here;
       pass it as `envmap`). Optional when `envmap` is given.
@@ -464,7 +473,8 @@ def render_reference(
     kd = _channels(brdf.kd, "kd")
     ks = _channels(brdf.ks, "ks")
     mu, sigma = brdf.mu, brdf.sigma
-    dt = jnp.result_type(normals.dtype, views.dtype, kd.dtype, ks.dtype)
+    # on the arrays, not their dtypes: a Python scalar's weak type must not widen float32 geometry (conventions.md)
+    dt = jnp.result_type(normals, views, kd, ks)
     dirs_all, rad_all = [], []
     chans = _brdf_channels(kd, ks) + ([] if lighting is None else _lighting_channels(lighting))
     env = None
@@ -509,8 +519,10 @@ def render_reference(
         raise ValueError("give the lighting: a `Lighting` with fast sources / disks and/or `envmap` (keyword form: `envmap`, `disks` and/or `directional`)")
     sd = jnp.concatenate(dirs_all, axis=0)
     sl = jnp.concatenate([jnp.broadcast_to(x, (x.shape[0], c)) for x in rad_all], axis=0)  # radiance x weight
-    n = jnp.broadcast_to(normals, batch + (3,)).astype(dt).reshape(-1, 3)
-    v = jnp.broadcast_to(views, batch + (3,)).astype(dt).reshape(-1, 3)
+    # unit normals and views, as `render_practical` (a zero one, a G-buffer's miss, stays 0 and renders 0): |n| = 2
+    # doubled the diffuse term and halved the specular one
+    n = _unit_or_zero(jnp.broadcast_to(normals, batch + (3,)).astype(dt).reshape(-1, 3))
+    v = _unit_or_zero(jnp.broadcast_to(views, batch + (3,)).astype(dt).reshape(-1, 3))
     kd = _bcast(kd.astype(dt), batch, c).reshape(-1, c)
     ks = _bcast(ks.astype(dt), batch, c).reshape(-1, c)
     vis = None
@@ -523,6 +535,11 @@ def render_reference(
     chunk = _reference_chunk(sd.shape[0]) if chunk is None else check_positive_int(chunk, "chunk")
     out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, brdf_model)
     return out.reshape(batch + (c,))
+
+
+def _unit_or_zero(a):
+    n2 = jnp.sum(a * a, -1, keepdims=True)
+    return jnp.where(n2 > 0, a * jax.lax.rsqrt(jnp.where(n2 > 0, n2, 1.0)), 0.0)
 
 
 def _reference_chunk(m: int) -> int:
