@@ -81,7 +81,10 @@ class BRDFResult(Solution):
       `at_bound`: `{"mu": bool, "sigma": bool}` the parameter stopped at its
       bound of the search box (`MU_BOUNDS`, `SIGMA_BOUNDS`; the data do not
       determine it: its standard error is `inf`), `undetermined`: the same
-      dict, also True where the one-sigma error exceeds $\\mu - 1$ (resp. $\\sigma$);
+      dict, also True where the one-sigma error exceeds $\\mu - 1$ (resp. $\\sigma$),
+      and both True, their errors `inf` and the search's `max_steps_reached`
+      reported as `converged`, when no channel carries a specular signal (no
+      $K_s$ above 3 standard errors: a matte object; `_no_specular_signal`);
       with `textured="kd_ks"` also `"ks"`: `(T, C)` True where a texel's $K_s$
       is not determined (no sample, or its one-sigma error not below the
       texture's reflectance level: `_undetermined_texel_ks`). Their values are
@@ -154,6 +157,29 @@ def _undetermined_texel_ks(kd, se_ks, seen):
     ref = jnp.nanmedian(jnp.where(seen, level, jnp.nan))
     scale = jnp.maximum(level, jnp.where(jnp.isfinite(ref), ref, 0.0))[:, None]
     return ~seen[:, None] | ~(se_ks < scale)
+
+
+def _no_specular_signal(ks, se_ks, s_unit, b, w, texel, und_ks=None):
+    """True when no channel carries a specular signal, so that $\\mu$ and $\\sigma$ are not determined.
+
+    A channel carries one when its $K_s$ (some texel's, for textured fits; with `"kd_ks"` only texels whose
+    $K_s$ is determined, `und_ks`) exceeds three times its standard error (two let one channel of 16-bit
+    quantization noise through at 2.2 standard errors) and the specular term $K_s S$ holds more
+    than $\\epsilon$ of the channel's data energy (noise-free Lambertian images leave $K_s$ at rounding,
+    3e-9, with a rounding-sized error). On Lambertian data the Jacobian's columns for $\\mu, \\sigma$ are
+    $K_s\\,\\partial S$, at rounding level; scaled to unit norm (`covariance_from_jacobian`) they looked
+    determined: σ from 0.018 to 0.67 across noise draws of one capture, each with a finite error and
+    `undetermined` False."""
+    dt = b.dtype
+    if ks.ndim == 1:
+        ks_pix, sig = ks[None, :], ks > 3.0 * se_ks
+    else:
+        ks_pix = ks[texel]
+        ok = ks > 3.0 * se_ks
+        sig = jnp.any(ok if und_ks is None else ok & ~und_ks, axis=0)
+    spec = jnp.sum(w[:, None] * (ks_pix * s_unit) ** 2, 0)
+    data = jnp.sum(w[:, None] * b * b, 0)
+    return ~jnp.any(sig & (spec > jnp.finfo(dt).eps * data))
 
 
 def _model(terms, kd, ks, mu, sigma, texel):
@@ -516,6 +542,15 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             se_ks = jnp.broadcast_to(jnp.sqrt(s2 * inv_schur), ks.shape)
         std = TorranceSparrow(se_kd, se_ks, se2[0] if fresnel else None, se2[1])
 
+    # mu and sigma act only through K_s S: without a specular signal they are not determined, whatever the
+    # Jacobian's scaled columns say (`_no_specular_signal`); the simplex then wanders on a flat objective
+    no_spec = _no_specular_signal(ks, std.ks, s_fin, b, w, texel, None if textured != "kd_ks" else und_ks)
+    inf = jnp.asarray(jnp.inf, dt)
+    std = TorranceSparrow.unchecked(std.kd, std.ks, jnp.where(no_spec, inf, std.mu) if fresnel else None,
+                                    jnp.where(no_spec, inf, std.sigma))
+    st_nm = Status.where(no_spec & (st_nm == Status.max_steps_reached), Status.converged, st_nm)
+    st_lm = Status.where(no_spec & (st_lm == Status.max_steps_reached), Status.converged, st_lm)
+
     finite = jnp.isfinite(rss) & jnp.all(jnp.isfinite(kd)) & jnp.isfinite(sigma)
     data_ss = jnp.sum(w[:, None] * b * b)
     # the model's own energy per channel: 0 under all-zero lighting (no pixel carries information on kd, ks)
@@ -535,7 +570,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     undetermined = {
         "mu": bound_mu | (~(std.mu < mu - 1.0) if fresnel else jnp.asarray(False)),
         "sigma": bound_sigma | ~(std.sigma < sigma),
-    }
+    }  # (`no_spec`: both, their errors are inf)
     if textured == "kd_ks":
         undetermined["ks"] = und_ks
     n_search = jnp.sum((w > 0).astype(jnp.int32)) if search is None else jnp.asarray(search.shape[0])

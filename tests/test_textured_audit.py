@@ -207,3 +207,31 @@ def test_textured_kd_ks_flags_the_texels_whose_ks_the_images_do_not_determine():
     r2 = solvers.fit_brdf(obs, dim, textured="kd_ks", fresnel=False)
     np.testing.assert_allclose(np.asarray(r2.brdf.kd), 1e3 * np.asarray(r.brdf.kd), rtol=1e-6, atol=1e-9)
     np.testing.assert_array_equal(np.asarray(r2.stats["undetermined"]["ks"]), np.asarray(r.stats["undetermined"]["ks"]))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lambertian_data_leave_mu_and_sigma_undetermined(seed):
+    """K_s = 0 (a matte object), 6 lights, 0.5 % noise: mu and sigma act only through K_s S, so the images do not
+    determine them. Before, the Jacobian's unit-scaled columns made them look determined: sigma 0.018 +- 0.016 in one
+    noise draw and 0.675 +- 0.200 in another, `undetermined` False, and noise-free data ended at
+    `max_steps_reached`. Now both are undetermined with infinite errors and status converged; Kd is recovered.
+    A weak but real specular term (K_s 0.03, 10 standard errors) keeps sigma determined and within 3 errors."""
+    mask, n, v = _sphere()
+    g = jaxsh.GBuffer(jnp.asarray(mask), jnp.asarray(n), jnp.asarray(n), jnp.asarray(v), jnp.asarray(10 - n[..., 2]))
+    dirs = _dirs(6)
+    lights = [solvers.Lighting(None, jnp.asarray(d[None]), jnp.full((1, 3), E)) for d in dirs]
+    kd = np.array([0.5, 0.4, 0.3])
+    rng = np.random.default_rng(seed)
+    for ks, noise in ((np.zeros(3), 0.005), (np.zeros(3), 0.0), (np.full(3, 0.03), 0.0005)):
+        imgs = [(_render(n, v, kd, ks, MU, SIGMA, d) + noise * rng.normal(size=(N, N, 3))) * mask[..., None]
+                for d in dirs]
+        obs = solvers.observations([g] * 6, imgs)
+        r = solvers.fit_brdf(obs, lights)
+        assert solvers.status_name(r.status) == "converged"
+        np.testing.assert_allclose(np.asarray(r.brdf.kd), kd, atol=5 * noise + 1e-6)
+        und = {k: bool(x) for k, x in r.stats["undetermined"].items()}
+        if ks[0] == 0:
+            assert und == {"mu": True, "sigma": True}
+            assert np.isinf(float(r.std_errors.sigma)) and np.isinf(float(r.std_errors.mu))
+        else:
+            assert not und["sigma"] and abs(float(r.brdf.sigma) - SIGMA) < 3 * float(r.std_errors.sigma)
