@@ -130,7 +130,10 @@ def observations(
 
     - `gbuffers`: one `jaxsh.GBuffer` per view; `images`: matching
       `(H, W, C)` (or `(H, W)`) linear radiance images.
-    - `masks`, `weights`: optional per-view `(H, W)` bool / float arrays.
+    - `masks`, `weights`: optional per-view `(H, W)` arrays. A mask keeps the
+      pixels where it is nonzero (bool, integer) or above 0.5 (float: a
+      coverage or a soft mask, as `jaxsh.io.read_mask` thresholds files; 0.1
+      used to count as inside).
     - `transfer` `(H, W, 9)`, `fast_visibility` `(H, W, J)`,
       `reflected_visibility` `(H, W)`: optional per-view visibility terms
       (`jaxsh.visibility_sh`, `jaxsh.directional_visibility`,
@@ -182,8 +185,9 @@ def observations(
     cols = {k: [] for k in ("n", "v", "b", "w", "t", "fv", "rv", "tx", "vi", "pi")}
     for k, gb in enumerate(gbuffers):
         sel = np.asarray(gb.mask).reshape(-1).astype(bool)
-        if m_user is not None:
-            sel &= m_user[k].astype(bool)
+        if m_user is not None:  # bool / integer masks: nonzero; float masks: above 0.5 (as `jaxsh.io.read_mask`)
+            mk = m_user[k]
+            sel &= (mk > 0.5) if np.issubdtype(mk.dtype, np.floating) else mk.astype(bool)
         w = np.ones(sel.shape, dt) if w_user is None else w_user[k].astype(dt)
         if w_user is not None and not np.all(np.isfinite(w[sel]) & (w[sel] >= 0)):
             raise ValueError(f"`weights[{k}]` must be finite and >= 0 inside the mask (0 drops a pixel)")

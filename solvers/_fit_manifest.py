@@ -95,6 +95,7 @@ def _check_models(m: dict, blocks) -> None:
         if model == "sharing_spatial" and not same_camera(m["views"]):
             raise jio.ManifestError(f"{path}: `solve.brdf_model` \"sharing_spatial\" takes its surface coordinates from the "
                                     "pixel grid of one camera: every `views[k].camera` must equal `views[0].camera`")
+    _check_solve_fields(m, model, known, blocks)
     if solve["textured"] is not None:
         if not known or m["brdf"] is not None:
             raise jio.ManifestError(f"{path}: `solve.textured` fits a textured BRDF under known lighting: give `lighting` "
@@ -102,6 +103,31 @@ def _check_models(m: dict, blocks) -> None:
         if not same_camera(m["views"]):
             raise jio.ManifestError(f"{path}: `solve.textured` has one texel per pixel of one camera: every "
                                     "`views[k].camera` must equal `views[0].camera`")
+
+
+# `solve` fields of reflectance sharing (Zickler 2006), and of its spatial form only
+_SHARING_FIELDS = ("n_centers", "m_w", "tol", "min_cos", "max_samples")
+
+
+def _check_solve_fields(m: dict, model: str, known: bool, blocks) -> None:
+    """A `solve` field the chosen fit does not use is an error, never silently ignored (docs/manifest.md): the
+    sharing settings outside `brdf_model` "sharing"/"sharing_spatial" (`m_xy` outside the spatial one);
+    `fresnel` and `textured` outside a Torrance-Sparrow fit of the BRDF (with a known `brdf` its μ is given);
+    `render_lmax` where no lighting block has an `envmap` to project."""
+    given, path = set(m.get("given", {}).get("solve", [])), m["path"]
+    sharing = model != "torrance_sparrow"
+    unused = {f: "a setting of reflectance sharing (`solve.brdf_model` \"sharing\" or \"sharing_spatial\")"
+              for f in _SHARING_FIELDS if not sharing}
+    if model != "sharing_spatial":
+        unused["m_xy"] = 'a setting of `solve.brdf_model` "sharing_spatial"'
+    if sharing or m["brdf"] is not None:
+        why = "the Torrance-Sparrow fit of the BRDF" + (" (the given `brdf` has its own μ)" if m["brdf"] is not None else "")
+        unused["fresnel"] = f"a setting of {why}"
+    lightings = [m["lighting"]] + [lit for lit in (blocks or []) if lit is not None]
+    if not known or not any(lit is not None and lit["envmap"] is not None for lit in lightings):
+        unused["render_lmax"] = "the cut-off of a given `envmap`, and no lighting block has one"
+    for f in sorted(given & unused.keys()):
+        raise jio.ManifestError(f"{path}: `solve.{f}` is {unused[f]}: this fit does not use it; remove it")
 
 
 def _out_names(m: dict) -> list[str]:

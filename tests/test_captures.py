@@ -300,3 +300,16 @@ def test_cli_photometric_capture_fit_then_render_held_out(tmp_path):
     want1 = np.asarray(jaxsh.render_practical(g.normal, g.view, jaxsh.TorranceSparrow(jnp.asarray(b["kd"]), jnp.asarray(b["ks"]),
                                               b["mu"], b["sigma"]), _one_light(dirs[0], HALF), mask=g.mask).total)
     np.testing.assert_allclose(v1[..., :3], want1, atol=1e-5)
+
+
+def test_observations_float_masks_keep_pixels_above_one_half():
+    """A float (soft) mask was cast with astype(bool): 0.1 counted as inside. Float masks now keep the pixels above
+    0.5, as `jaxsh.io.read_mask` thresholds files; bool and integer masks keep their nonzero pixels."""
+    g = jaxsh.sphere_gbuffer(solvers.view_cameras(1, 16)[0], jnp.zeros(3), jnp.asarray(1.0))
+    obj = np.asarray(g.mask)
+    img = np.ones((16, 16, 3))
+    soft = np.where(np.arange(16)[None, :] < 8, 0.1, 0.9) * np.ones((16, 1))
+    kept = obj & (soft > 0.5)
+    assert 0 < kept.sum() < obj.sum()
+    for m, want in ((soft, kept), (soft > 0.5, kept), ((soft > 0.5).astype(np.uint8), kept), (np.ones((16, 16)), obj)):
+        assert solvers.observations([g], [img], masks=[m]).n_samples == int(want.sum())

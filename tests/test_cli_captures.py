@@ -290,7 +290,7 @@ def test_jpeg_is_read_with_its_declared_encoding(tmp_path):
         (lambda m: m["views"][0]["lighting"]["directional"].append({"direction": [0, 1, 1], "radiance": 1}),
          "views[0].lighting"),
         (lambda m: m["views"][1].update(camera={**CAM, "scale": 0.05}), "views[k].camera"),
-        (lambda m: m["solve"].update(brdf_model="torrance_sparrow", textured="kd", n_centers=3) or
+        (lambda m: m["solve"].update(brdf_model="torrance_sparrow", textured="kd") or
          m["views"][1].update(camera={**CAM, "scale": 0.05}), "solve.textured"),
     ],
 )

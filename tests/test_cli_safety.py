@@ -264,3 +264,24 @@ def test_unexpected_failures_are_one_line_exit_1(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr("solvers._render_manifest.render_manifest", boom)
     assert main(["render", str(p), "--out", str(tmp_path / "o")]) == 1
     one_line_error(capsys, "RuntimeError", "something broke", "JAXSH_TRACEBACK")
+
+
+@pytest.mark.parametrize("solve, brdf, field", [
+    ({"n_centers": 5}, False, "n_centers"), ({"m_w": 0.1}, False, "m_w"), ({"tol": 0.5}, False, "tol"),
+    ({"min_cos": 0.9}, False, "min_cos"), ({"max_samples": 3}, False, "max_samples"), ({"m_xy": 0.2}, False, "m_xy"),
+    ({"brdf_model": "sharing", "m_xy": 0.2}, False, "m_xy"), ({"fresnel": False}, True, "fresnel"),
+    ({"render_lmax": 3}, False, "render_lmax"), ({"render_lmax": 3}, True, "render_lmax"),
+])
+def test_fit_refuses_solve_fields_its_fit_does_not_use(tmp_path, capsys, no_solve, solve, brdf, field):
+    """docs/manifest.md: a field a command cannot use is an error before any work, never silently ignored. `jaxsh fit`
+    ran a Torrance-Sparrow fit with sharing settings, an inverse lighting (known `brdf`) with `fresnel` false, and
+    a directional-only fit with `render_lmax`, each exiting 0 with the same result as without the field."""
+    p = manifest(tmp_path, fit=True)
+    m = json.loads(p.read_text())
+    m["solve"] = solve
+    if brdf:
+        m["brdf"] = {"model": "torrance_sparrow", "kd": 0.3, "ks": 0.2, "mu": 1.5, "sigma": 0.2}
+        m["lighting"] = None
+    p.write_text(json.dumps(m))
+    assert main(["fit", str(p), "--out", str(tmp_path / "out")]) == 2
+    one_line_error(capsys, f"`solve.{field}`", "does not use it")
