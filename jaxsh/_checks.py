@@ -173,6 +173,23 @@ def check_lmax(lmax, name: str = "lmax") -> int:
     return value
 
 
+def check_lmax_range(lmax: int, dtype, limits: tuple[int, int], what: str) -> int:
+    """`lmax` within the degree a dtype's range allows (`limits`: below float64, float64), else a `ValueError`.
+
+    The harmonics are evaluated from seeds $\\sin^m\\theta$ (times constants), which leave the floating-point
+    range long before the harmonics themselves get small: at degree $l$ the seed of order $m \\approx l/e$ at
+    $\\sin\\theta = 1/e$ is about $e^{-l/e}$, so float32 seeds underflow from $l \\approx 200$ and float64 ones
+    from $l \\approx 1925$, and every harmonic above them comes out 0 where it is of order 1 (measured: float32
+    `real_sh` returned 0 for -1.44 at l = 256; float64 0 for -0.662 at l = 2100)."""
+    lo, hi = limits
+    limit = hi if jnp.dtype(dtype) == jnp.float64 else lo
+    if lmax > limit:
+        raise ValueError(
+            f"`lmax` = {lmax} is beyond what {what} evaluates in {jnp.dtype(dtype).name}: at most {limit} (the "
+            f"sin(theta)^m seeds of its recurrence underflow beyond it{'; use float64' if limit == lo else ''})")
+    return lmax
+
+
 def check_dirs(dirs, name: str = "dirs"):
     """Directions: a float array of shape (..., 3) (values not checked)."""
     dirs = as_float_array(dirs, name)

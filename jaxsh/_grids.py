@@ -63,10 +63,13 @@ def fejer1_weights(n: int) -> np.ndarray:
     $$w_k = \\frac{2}{n}\\Big(1 - 2\\sum_{j=1}^{\\lfloor n/2\\rfloor}
          \\frac{\\cos(2j\\theta_k)}{4j^2-1}\\Big),$$
 
-    exact for polynomials in $\\cos\\theta$ of degree < n (and, on the sphere,
-    for trigonometric polynomials in θ of degree < n times $\\sin\\theta$).
+    exact for polynomials in $\\cos\\theta$ of degree < n (on the sphere:
+    $\\int_0^\\pi f(\\theta)\\sin\\theta\\,d\\theta$ for cosine polynomials
+    $f = \\sum_{k<n} a_k\\cos k\\theta$; not for sine terms: n = 8 gives
+    1.56988 for $\\int_0^\\pi \\sin^2\\theta\\,d\\theta = \\pi/2$).
     The weights sum to 2. Returned as NumPy float64, shape `(n,)`. Comparable
-    to `ducc0.sht.get_gridweights("F1", n) / (2π/W)`.
+    to `ducc0.sht.get_gridweights("F1", n) / (2π)` (ducc0's weights include
+    the longitude step and sum to 4π).
 
     ??? cite "References"
         Waldvogel, J. (2006). Fast construction of the Fejér and Clenshaw–Curtis

@@ -23,7 +23,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 from ._custom_types import ScalarLike, SequenceLike
 
-from ._checks import as_float_array, check_dirs, check_nonzero_dirs, check_lmax, check_values, coeff_layout, common_dtype
+from ._checks import (as_float_array, as_float_scalar, check_dirs, check_lmax, check_nonzero_dirs, check_values,
+                      coeff_layout, common_dtype)
 from ._compile import jit
 from ._convolution import convolve
 from ._indexing import sh_degrees
@@ -179,7 +180,7 @@ def filter_lighting_microfacet(coeffs: Real[ArrayLike, "n_coeffs *C"], sigma: Re
     if coeffs.ndim not in (1, 2):
         raise ValueError(f"`coeffs` must have shape (n_coeffs,) or (n_coeffs, C), got {tuple(coeffs.shape)}")
     lmax, _ = coeff_layout(coeffs.shape, "coeffs", channels=coeffs.ndim == 2)
-    sigma = as_float_array(sigma, "sigma")
+    sigma = as_float_scalar(sigma, "sigma")  # a vector sigma broadcast into (k, n, C) silently
     dt = common_dtype(coeffs, sigma)  # a Python-scalar sigma (weakly typed) adopts the dtype of `coeffs`
     a = microfacet_spectrum(sigma.astype(dt), lmax)
     return convolve(coeffs.astype(dt), a, channels=coeffs.ndim == 2)

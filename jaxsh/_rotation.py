@@ -15,8 +15,10 @@ $l$ is a fixed linear combination of products of the $l = 1$ block with
 block $l-1$. Everything is a polynomial in the entries of $R$ — no Euler
 angles, so no singularity at β = 0 or π, and derivatives with respect to
 $R$ are exact everywhere. Cost $O(l_{max}^3)$ per rotation, batched over any
-leading shape of `R`. Accuracy (float64): orthogonality error ~1e-14 at
-$l_{max} = 64$.
+leading shape of `R`. Accuracy (float64), measured as the largest
+$|D^TD - I|$ over 6 random rotations: 8e-15 at $l_{max} = 16$, 3e-14 at
+32, 2e-11 at 64 and 2e-8 at 96. The recurrence's rounding grows with $l$,
+about tenfold every 10 degrees beyond 32.
 
 `rotate_sh` never forms $D$. It factors the rotation with fixed tables
 (the "J-matrix" method, as in SHTOOLS' `djpi2` + `SHRotateRealCoef`):
@@ -32,6 +34,12 @@ and their neighbourhoods are as accurate as anywhere else (float64 error
 the angles: $D(R + dR) \\approx D(R)\\,(1 + \\sum_k \\omega_k G_k)$ with $\\omega$
 the axial vector of $R^{\\mathsf T}dR$ and $G_k$ the fixed generators, which is
 exact at every $R$ (gimbal lock included) for $dR$ tangent to the rotations.
+Second derivatives are not: their tangent goes through the angles again, and
+at β = 0 or π (the identity included) a Hessian of `rotate_sh` is NaN or
+wrong (measured off by 4 at β = π). Use `wigner_D`, a polynomial in $R$, for
+second-order derivatives there. The table $J$ comes from the recurrence, so
+`rotate_sh` inherits its rounding: against quadrature of $f(R^{\\mathsf T}\\omega)$,
+7e-11 at $l_{max} = 64$ and 2.5e-9 at 80.
 
 ??? cite "References"
     Ivanic, J., Ruedenberg, K. (1996). Rotation matrices for real spherical
@@ -281,6 +289,8 @@ def _rotate(c, R, lmax, batch):
     n, C = c.shape[-2:]
     if lmax == 0:
         return jnp.broadcast_to(c, batch + (n, C))
+    if math.prod(batch) == 0:  # an empty batch (as `wigner_D`): nothing to rotate
+        return jnp.zeros(batch + (n, C), c.dtype)
     if math.prod(R.shape[:-2]) == 1:
         # One rotation for all: the batch of `coeffs` rides along as channels.
         cb = jnp.broadcast_to(c, batch + (n, C))
