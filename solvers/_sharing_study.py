@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._results import status_name
 from ._sharing import fit_sbrdf, reflectance_samples
 from .synthetic import _sharing_scenes as _Z
 
 
 def sharing_tradeoff(
     brdf,
-    n_images=(1, 2, 4, 8),
+    n_images=(2, 4, 8),
     m_xy=(0.03, 0.1, 0.3, 1.0, 3.0),
     n_px: int = 24,
     n_centers: int = 150,
@@ -44,7 +45,11 @@ def sharing_tradeoff(
     **Returns:** a dict with `"error"` `(len(n_images), len(m_xy))` relative RMS
     radiance error over the held-out pixels with both cosines $>$ `min_cos`,
     `"n_images"`, `"m_xy"`, `"n_samples"` (per image count) and `"best_m_xy"`
-    (the $m_{xy}$ of least error, per image count).
+    (the $m_{xy}$ of least error, per image count). A fit `fit_sbrdf` reports
+    `ill_conditioned` has a NaN error (and a count whose every fit is so, a NaN
+    `best_m_xy`): with one image and the fixed view, $\\theta_d$ and so $w$ are
+    constant and eq. 13's degree-1 system is singular (every $m_{xy}$ gave the
+    same error, and the tie went to the first one).
     """
     n_images = tuple(int(n) for n in n_images)
     m_xy = tuple(float(m) for m in m_xy)
@@ -65,7 +70,9 @@ def sharing_tradeoff(
         n_samples.append(int(smp.points.shape[0]))
         for b, m in enumerate(m_xy):
             model = fit_sbrdf(smp, min(n_centers, smp.points.shape[0]), m_xy=m, m_w=m_w, key=key)
+            if status_name(model.fit.status) == "ill_conditioned":  # e.g. one image: w is constant (eq. 13 singular)
+                continue  # NaN: no model, not a tie broken by the first m_xy
             pred = np.stack([np.asarray(model.render(normal, _Z.VIEW, li, mask=mask, xy=xy)) for li in l_out])
             err[a, b] = _Z.relative_rms(pred, i_out, vmask)
-    best = [m_xy[int(np.nanargmin(row))] for row in err]
+    best = [m_xy[int(np.nanargmin(row))] if np.any(np.isfinite(row)) else float("nan") for row in err]
     return {"error": err, "n_images": n_images, "m_xy": m_xy, "n_samples": n_samples, "best_m_xy": best}

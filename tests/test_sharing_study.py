@@ -31,3 +31,22 @@ def test_tradeoff_bad_arguments():
         solvers.sharing_tradeoff(Z.varying_cook_torrance, m_xy=(0.0,))
     with pytest.raises(ValueError, match="n_images"):
         solvers.sharing_tradeoff(Z.varying_cook_torrance, n_images=(0,))
+
+
+def test_tradeoff_one_image_is_nan_not_a_tie():
+    """One light and the fixed view: theta_d, so w, is constant and eq. 13's degree-1 system singular (fit_sbrdf:
+    ill_conditioned). Every m_xy used to get the same error and `best_m_xy` the first value by tie-breaking, which
+    looked like the paper's claim; now NaN, while two images give finite errors."""
+    r = solvers.sharing_tradeoff(Z.varying_cook_torrance, n_images=(1, 2), m_xy=(0.03, 0.3), n_px=12, n_centers=30,
+                                 n_out=4)
+    assert np.all(np.isnan(r["error"][0])) and np.isnan(r["best_m_xy"][0])
+    assert np.all(np.isfinite(r["error"][1])) and r["best_m_xy"][1] in (0.03, 0.3)
+
+
+def test_view_cameras_check_n_views_and_azimuths():
+    """`view_cameras(5, azimuths=[two values])` returned 2 cameras and n_views 0 or -2 one camera, silently."""
+    with pytest.raises(ValueError, match="n_views"):
+        solvers.view_cameras(0, 16)
+    with pytest.raises(ValueError, match=r"`azimuths` must hold `n_views` = 5 values, got 2"):
+        solvers.view_cameras(5, 16, azimuths=[0.3, 2.0])
+    assert len(solvers.view_cameras(2, 16, azimuths=[0.3, 2.0])) == 2

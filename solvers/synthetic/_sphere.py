@@ -76,11 +76,20 @@ def default_sources(dtype=np.float64):
 
 def view_cameras(n_views: int = 3, size: int = 64, radius: float = 1.0, elevation: float = 0.45,
                  azimuths=None, dtype=np.float64):
-    """Orthographic cameras looking at a sphere of `radius` at the origin from `n_views` directions."""
+    """Orthographic cameras looking at a sphere of `radius` at the origin from `n_views` directions.
+
+    The eyes are 5 units away at `elevation` (radians above the xy plane) and at the `azimuths` (radians from +x;
+    default `n_views` values evenly spaced on [-0.5, 1], or 0.2 for one view), `size` × `size` pixels covering
+    2.2 `radius`. `azimuths`, when given, must hold `n_views` values; `n_views` < 1 is a `ValueError`."""
+    if isinstance(n_views, bool) or not isinstance(n_views, (int, np.integer)) or n_views < 1:
+        raise ValueError(f"`n_views` must be an integer >= 1, got {n_views!r}")
     if azimuths is None:
         azimuths = np.linspace(-0.5, 1.0, n_views) if n_views > 1 else np.array([0.2])
+    azimuths = np.asarray(azimuths, dtype).reshape(-1)
+    if azimuths.shape[0] != n_views:  # (were used as given, n_views ignored without a word)
+        raise ValueError(f"`azimuths` must hold `n_views` = {n_views} values, got {azimuths.shape[0]}")
     cams = []
-    for az in np.asarray(azimuths, dtype).reshape(-1):
+    for az in azimuths:
         eye = 5.0 * np.array([np.cos(elevation) * np.cos(az), np.cos(elevation) * np.sin(az), np.sin(elevation)])
         m = jaxsh.look_at(jnp.asarray(eye, dtype), jnp.zeros(3, dtype), jnp.asarray([0.0, 0.0, 1.0], dtype))
         cams.append(jaxsh.OrthographicCamera(2.2 * radius / size, size, size, m))
@@ -110,8 +119,12 @@ def sphere_capture(
     or `"ggx"` — so a fit can be checked against data with model error.
 
     `noise`: additive Gaussian noise with standard deviation `noise` times the
-    RMS of each clean image over the object (1 % by default). `sources`:
-    `(disks, directional)` as `default_sources()` returns.
+    RMS of each clean image over the object (1 % by default), drawn from
+    `seed`. `sources`: `(disks, directional)` as `default_sources()` returns;
+    `lighting_lmax`: the band limit of the returned lighting's SH (the truth a
+    fit is compared with); `n_views`, `size`, `azimuths`, `elevation`: the
+    cameras (`view_cameras`); `disk_nodes`: the reference renderer's quadrature
+    of each disk; `dtype`: of the cameras, images and truths.
     """
     disks, directional = default_sources(dtype) if sources is None else sources
     cams = view_cameras(n_views, size, elevation=elevation, azimuths=azimuths, dtype=dtype)
