@@ -156,7 +156,8 @@ class FactorizationResult(Solution):
       `nonfinite` and `no_signal`; without it,
       the status of the eq.-25 solve of stage 1 (as `inverse_lighting`).
     - `iterations`: the $\\mu$ candidates evaluated (23 with `fresnel`, 32
-      with `refine_mu`: the joint model's 9) plus the $\\sigma$ values the
+      with `refine_mu`: the joint model's 9; 41 when its minimum fell on the
+      first window's edge, 18 there) plus the $\\sigma$ values the
       final refinement evaluated.
     - `rms`, `rel_rms` (never NaN) of the final stage, on all pixels.
     - `stats`: `num_mu_candidates`, `num_sigma_candidates` (the refinement's
@@ -603,7 +604,9 @@ def factorize(
       are 7.5 %, 9.5 %, 2.5 % without it and about 1 %, 0.5 %, 0.1 % with it;
       on noise-free images of the fitted model under a probe and a sun,
       stage 1 gives $\\mu$ 1.36 for 1.6 and $K_s$ 40 % low. It costs 9
-      evaluations of the refinement's search on the subset (`docs/performance.md`).
+      evaluations of the refinement's search on the subset (`docs/performance.md`),
+      9 more when the minimum falls on the edge of their window (then centred
+      there once).
       `False`: stage 1's $\\mu$ (R&H's algorithm). With `lighting_method="sh"`
       on either path (a `MirrorTable` of the search subset, or direct sums
       when the subset is too large for one); with `"dual"`, stage 1's $\\mu$.
