@@ -116,7 +116,7 @@ from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_regi
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
                                 mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
-from ._results import Solution, Status, check_bool, check_int, finish, rms_pair, signal_status, worst
+from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
 class SourceEstimate(eqx.Module):
@@ -153,8 +153,13 @@ class FactorizationResult(Solution):
       residual of the final stage; `kd` errors equal `ks` errors).
     - `status`: with the refinement, the worst of its search's outcome
       (`max_steps_reached` when the σ grids stop wider than the tolerance),
-      `nonfinite` and `no_signal`; without it,
-      the status of the eq.-25 solve of stage 1 (as `inverse_lighting`).
+      `nonfinite`, `no_signal` and the status of stage 1's eq.-25 solve at the
+      final μ (the same lighting unknowns: `ill_conditioned` when the pixels do
+      not determine them); without it, the status of that solve (as
+      `inverse_lighting`).
+    - Bad options are `ValueError`s naming them: `search_pixels` below
+      $(l^*+1)^2 + 4$, `rtol`/`atol` not finite ≥ 0, a `key` that is no PRNG
+      key, a `region` that is not `(direction (3,), radius in (0, π])`.
     - `iterations`: the $\\mu$ candidates evaluated (23 with `fresnel`, 32
       with `refine_mu`: the joint model's 9; 41 when its minimum fell on the
       first window's edge, 18 there) plus the $\\sigma$ values the
@@ -659,6 +664,18 @@ def factorize(
     search_pixels = None if search_pixels is None else check_int(search_pixels, "search_pixels")
     if lmax < 3:
         raise ValueError(f"`lmax` must be >= 3 for factorization, got {lmax}")
+    if search_pixels is not None and search_pixels < jaxsh.num_coeffs(lmax) + 4:
+        # fewer samples than the search's unknowns (the lighting's coefficients, K_s, mu, sigma, the source):
+        # search_pixels=5 gave K_s 0.94 for 0.3 with status converged
+        raise ValueError(f"`search_pixels` must be at least (lmax + 1)^2 + 4 = {jaxsh.num_coeffs(lmax) + 4} (the "
+                         f"search's unknowns at lmax {lmax}), or None, got {search_pixels}")
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        if tol is not None:
+            check_float(tol, name)
+    if key is not None and not (isinstance(key, (jax.Array, np.ndarray)) and (
+            jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == np.uint32 and key.shape == (2,)))):
+        raise ValueError(f"`key` must be a JAX PRNG key (jax.random.key or PRNGKey) or None, got {key!r}")
+    _check_region_arg(region)
     if refine and not find_sigma:
         raise ValueError("`refine=True` needs `find_sigma=True` (the refinement models the found source)")
     if lighting_method not in ("sh", "dual"):
@@ -838,7 +855,7 @@ def factorize(
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
                   rows_obs)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted = out
-    kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2)
+    kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2, res1.status)
     brdf = TorranceSparrow.unchecked(kd, ks, mu, sigma)
     se_mu = None
     if mu is not None:
@@ -854,11 +871,30 @@ def factorize(
 
 
 @jaxsh.jit
-def _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2):
-    """K_d, the status and the step count of a refined factorization (one program: eagerly, each op compiled)."""
+def _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2, st1):
+    """K_d, the status and the step count of a refined factorization (one program: eagerly, each op compiled).
+    `st1`: the status of stage 1's eq.-25 solve at the final mu: the refinement solves for the same lighting
+    (plus the source), so lighting the data do not determine there is not determined by it either (6 valid
+    pixels: stage 1 `ill_conditioned`, the refinement `converged` with rms 0 and zero standard errors)."""
     finite = jnp.all(jnp.isfinite(ks)) & jnp.isfinite(sigma) & jnp.isfinite(rms)
-    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_nm)
+    status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_nm, st1)
     return 1.0 - ks, status, its1 + its2
+
+
+def _check_region_arg(region):
+    """`region` = `(direction (3,), radius)` with a finite non-zero direction and a radius in (0, pi], or None."""
+    if region is None:
+        return
+    try:
+        d, r = region
+        d = np.asarray(d, np.float64)
+        r = float(r)
+    except (TypeError, ValueError):
+        raise ValueError(f"`region` must be (direction (3,), radius in radians) or None, got {region!r}") from None
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.any(d != 0):
+        raise ValueError(f"`region`'s direction must be a finite non-zero 3-vector, got {region[0]!r}")
+    if not (np.isfinite(r) and 0 < r <= np.pi):
+        raise ValueError(f"`region`'s radius must be in (0, pi] radians, got {r}")
 
 
 def _draw_without_replacement(key, n: int, m: int) -> np.ndarray:

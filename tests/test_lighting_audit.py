@@ -1,4 +1,5 @@
-"""Audit of `inverse_lighting` and `fit_brdf_sh`: the reported statistics against a NumPy design matrix.
+"""Audit of `inverse_lighting` and `fit_brdf_sh` (the reported statistics against a NumPy design matrix), and of
+`factorize`'s status on too few pixels and its option checks.
 
 The estimates were right; their statistics were not. `eig_solve` formed the RSS from the normal equations,
 $b^Tb - 2x^TA^Tb + x^TA^TAx$, whose rounding is about $\\epsilon\\,b^Tb$. In float32 that made `rms`, every
@@ -8,6 +9,7 @@ errors from $s^2 = 0/1$. References here: a design matrix written in NumPy from 
 `scipy.special`, Lambert's $A_l$ in closed form), and least squares on it in float64.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -133,3 +135,34 @@ def test_rms_pair_is_nan_when_the_residual_or_the_data_are():
         assert np.isnan(float(rel))
     rms, rel = rms_pair(jnp.asarray(0.0), jnp.asarray(0.0), jnp.asarray(3.0))
     assert float(rms) == 0 and float(rel) == 0
+
+
+@pytest.fixture(scope="module")
+def small_obs():
+    brdf = solvers.TorranceSparrow(jnp.array([0.6, 0.45, 0.3]), jnp.array([0.3, 0.3, 0.3]), jnp.asarray(1.6),
+                                   jnp.asarray(0.12))
+    cap = solvers.sphere_capture(brdf, size=24, n_views=2, noise=0.01)
+    return solvers.observations(cap.gbuffers, cap.images)
+
+
+def test_factorize_keeps_stage_one_status_on_too_few_pixels(small_obs):
+    """Six valid pixels for 49 lighting coefficients: stage 1 says `ill_conditioned`, and the refinement, which
+    solves for the same lighting plus the source, used to report `converged` with rms 0 and zero standard errors."""
+    w = np.zeros(small_obs.n_samples)
+    w[np.linspace(0, small_obs.n_samples - 1, 6).astype(int)] = 1.0
+    obs = eqx.tree_at(lambda o: o.weights, small_obs, jnp.asarray(w))
+    r = solvers.factorize(obs, 6)
+    assert solvers.status_name(r.status) != "converged"
+
+
+@pytest.mark.parametrize("kw, name", [
+    (dict(search_pixels=5), "search_pixels"), (dict(region=(1, 2)), "region"), (dict(region="up"), "region"),
+    (dict(region=([0.0, 0.0, 1.0], -1.0)), "region"), (dict(region=([0.0, 0.0, 0.0], 0.5)), "region"),
+    (dict(rtol=-1.0), "rtol"), (dict(atol=np.nan), "atol"), (dict(key=5), "key"),
+])
+def test_factorize_bad_options_are_named_errors(small_obs, kw, name):
+    """Options that were accepted and gave garbage marked converged (`search_pixels=5`: K_s 0.94 for 0.3), a
+    `max_steps_reached`/`nonfinite` status (`rtol=-1`, `atol=nan`), nothing (`key=5`, a negative region radius),
+    or an error from inside a matrix product (`region=(1, 2)`)."""
+    with pytest.raises(ValueError, match=rf"`{name}"):
+        solvers.factorize(small_obs, 6, **kw)
