@@ -204,7 +204,7 @@ def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, ch
     return _lighting_from_system(ata, atb, g.bb, g.count, kd, lmax, ridge, rcond, rss_of)
 
 
-def _residual_ss(obs, kd, ks, mu, filt, lmax, chunk, literal, x, rss_normal):
+def _residual_ss(obs, kd, ks, mu, filt, lmax, chunk, literal, x, rss_normal, bb):
     """$\\sum_i w_i (A_c x_c - b_c)_i^2$ per channel `(C,)`, summed over pixel chunks (`lax.scan`), for `eig_solve`.
 
     The normal equations' form $b^Tb - 2x^TA^Tb + x^TA^TAx$ cancels: its rounding is about $\\epsilon\\,b^Tb$.
@@ -233,7 +233,7 @@ def _residual_ss(obs, kd, ks, mu, filt, lmax, chunk, literal, x, rss_normal):
 
     if x.dtype != jnp.float64:
         return exact()
-    bb = jnp.sum(obs.weights[:, None] * obs.values * obs.values, 0)
+    # `bb`: the data's weighted sum of squares per channel, accumulated with the normal equations
     return jax.lax.cond(jnp.any(rss_normal < 1e-6 * bb), exact, lambda: rss_normal)
 
 

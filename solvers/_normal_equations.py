@@ -300,7 +300,7 @@ def eig_solve(ata, atb, bb, count, rcond, ridge, rss_of=None):
     `inf` where a coefficient has weight in the null space, and every one when $n_{obs} \\le$ rank: no degree
     of freedom is left to estimate $s^2$), `determined` `(C, n)`, the singular values of $A$ `(C, n)`
     descending, `rss` `(C,)` and `rank` `(C,)`. The RSS is $b^Tb - 2x^TA^Tb + x^TA^TAx$ (exact for any $x$
-    in exact arithmetic), or `rss_of(x, that)` when given: the normal-equation form cancels, its rounding is
+    in exact arithmetic), or `rss_of(x, that, bb)` when given: the normal-equation form cancels, its rounding is
     about $\\epsilon\\,b^Tb$, which in float32 made `rms` and every standard error wrong (1.18× at 1 % noise,
     50× at 0.01 %, 1000× on exact data) and in float64 gave an RSS of 0 on exact data; `inverse_lighting`
     passes the residual's own sum over the pixels.
@@ -315,7 +315,7 @@ def eig_solve(ata, atb, bb, count, rcond, ridge, rss_of=None):
     rss = bb - 2 * jnp.sum(x * atb, -1) + jnp.einsum("ci,cij,cj->c", x, ata, x)
     rss = jnp.maximum(rss, 0.0)
     if rss_of is not None:
-        rss = rss_of(x, rss)
+        rss = rss_of(x, rss, bb)
     n_free = jnp.sum(keep, -1).astype(rss.dtype)
     dof = count - n_free
     s2 = rss / jnp.maximum(dof, 1.0)
