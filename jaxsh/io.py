@@ -1071,8 +1071,7 @@ def _lighting(r: _Reader, v, where: str):
         if colours not in (1, 3):
             raise r.err(f"{where}.envmap", f"has {colours} colour channels{' besides alpha' if info['alpha'] else ''}: "
                                            f"an environment map is grey (1) or RGB (3): {env}")
-    elif any(v.get(k) is not None for k in ("up", "layout", "encoding")):
-        k = next(k for k in ("up", "layout", "encoding") if v.get(k) is not None)
+    elif (k := next((k for k in ("up", "layout", "encoding") if v.get(k) is not None), None)) is not None:
         raise r.err(f"{where}.{k}", "describes an `envmap`; there is none (`directional` sources are given in the world "
                                     "frame, in linear radiance)")
     rot = None

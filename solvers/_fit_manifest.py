@@ -112,8 +112,9 @@ _SHARING_FIELDS = ("n_centers", "m_w", "tol", "min_cos", "max_samples")
 def _check_solve_fields(m: dict, model: str, known: bool, blocks) -> None:
     """A `solve` field the chosen fit does not use is an error, never silently ignored (docs/manifest.md): the
     sharing settings outside `brdf_model` "sharing"/"sharing_spatial" (`m_xy` outside the spatial one);
-    `fresnel` and `textured` outside a Torrance-Sparrow fit of the BRDF (with a known `brdf` its μ is given);
-    `render_lmax` where no lighting block has an `envmap` to project."""
+    `fresnel` outside a Torrance-Sparrow fit of the BRDF (with a known `brdf` its μ is given); `render_lmax`
+    where no lighting block has an `envmap` to project. (`textured`: `_check_models`.) The first such field,
+    in name order, is reported."""
     given, path = set(m.get("given", {}).get("solve", [])), m["path"]
     sharing = model != "torrance_sparrow"
     unused = {f: "a setting of reflectance sharing (`solve.brdf_model` \"sharing\" or \"sharing_spatial\")"
@@ -126,8 +127,9 @@ def _check_solve_fields(m: dict, model: str, known: bool, blocks) -> None:
     lightings = [m["lighting"]] + [lit for lit in (blocks or []) if lit is not None]
     if not known or not any(lit is not None and lit["envmap"] is not None for lit in lightings):
         unused["render_lmax"] = "the cut-off of a given `envmap`, and no lighting block has one"
-    for f in sorted(given & unused.keys()):
-        raise jio.ManifestError(f"{path}: `solve.{f}` is {unused[f]}: this fit does not use it; remove it")
+    bad = sorted(given & unused.keys())
+    if bad:
+        raise jio.ManifestError(f"{path}: `solve.{bad[0]}` is {unused[bad[0]]}: this fit does not use it; remove it")
 
 
 def _out_names(m: dict) -> list[str]:
