@@ -37,10 +37,11 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Complex, Float, Real
+from jaxtyping import Array, ArrayLike, Complex, Float, Inexact, Real
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array, as_float_scalar, check_dirs, check_dtype, check_lmax, check_positive_int, lmax_from_size
+from ._checks import (as_float_array, as_float_scalar, check_dirs, check_dtype, check_lmax, check_positive_int, check_values,
+                      lmax_from_size)
 from ._indexing import sh_degrees, sh_lambda, sh_orders
 from ._rotation import wigner_d_y
 from ._sh import complex_sh
@@ -75,8 +76,9 @@ def _hemisphere_nodes(n: int, dtype):
 def _azimuth_spectrum(values, lmax, n_phi):
     """$\\int_0^{2\\pi} g(\\Delta)\\cos(q\\Delta)\\,d\\Delta$ for q = 0..lmax from samples at Δ_k = 2πk/K (last axis)."""
     spec = jnp.real(jnp.fft.rfft(values, axis=-1)) * (2 * jnp.pi / n_phi)
-    q = np.arange(lmax + 1)
-    return spec[..., q % n_phi] if lmax + 1 > spec.shape[-1] else spec[..., : lmax + 1]
+    q = np.arange(lmax + 1) % n_phi
+    q = np.minimum(q, n_phi - q)  # cos(q D_k) = cos((K - q) D_k) on the K-point grid: fold, never clamp
+    return spec[..., q]
 
 
 def brdf_sh_coefficients(
@@ -119,14 +121,19 @@ def brdf_incident_coefficients(
     real (the transfer function is even in Δφ); $\\hat\\rho_{l,-q} = (-1)^q\\hat\\rho_{lq}$.
 
     **Arguments:** `transfer` as in the module docstring; `theta_o`: a
-    scalar (shape `()`; another shape is a `ValueError` naming it: one view
-    per call); `lmax` ≥ 0; `n_theta`, `n_phi`: quadrature sizes.
+    scalar in $[0, \\pi/2]$ (another shape, or a view below the horizon, is a
+    `ValueError` naming it: one view per call); `lmax` ≥ 0; `n_theta`, `n_phi`:
+    quadrature sizes (orders $q > $ `n_phi`/2 get the `n_phi`-point rule's
+    aliased value, that of $\\min(q, n_\\phi - q)$: take `n_phi` > 2·`lmax`);
+    `dtype`: of the result (default: that of `theta_o` and the default float).
     """
     lmax = check_lmax(lmax)
     nt = check_positive_int(n_theta, "n_theta")
     npf = check_positive_int(n_phi, "n_phi")
     theta_o = as_float_scalar(theta_o, "theta_o")
-    dt = jnp.result_type(_default_dtype(dtype), theta_o.dtype)
+    theta_o = check_values(theta_o, lambda a: (a < 0) | (a > jnp.pi / 2), "theta_o", "in [0, pi/2] (a view above the horizon)")
+    dt = _default_dtype(dtype) if dtype is not None else jnp.result_type(_default_dtype(None), theta_o)
+    theta_o = theta_o.astype(dt)
     th, w = _hemisphere_nodes(nt, dt)
     # Y_lq(θi, φi) with Δ = φo − φi = −φi: ∫ g(Δ) e^{iqφi} dφi = ∫ g(Δ) e^{-iqΔ} dΔ = G_q (g even).
     dphi = jnp.asarray(2 * np.pi * np.arange(npf) / npf, dt)
@@ -237,7 +244,7 @@ def factorize_light_field(Bt: Complex[ArrayLike, "n_coeffs p q2"]):
 
 
 def reflect_sh(
-    L: Complex[ArrayLike, " n_coeffs"],
+    L: Inexact[ArrayLike, " n_coeffs"],
     rho_i: Real[ArrayLike, " n_coeffs"],
     alpha: Real[ArrayLike, ""],
     beta: Real[ArrayLike, ""],
@@ -252,7 +259,8 @@ def reflect_sh(
     `L` complex lighting coefficients of the same lmax. Exact for lighting
     band-limited to lmax. Returns the real radiance.
 
-    **Arguments:** `L`, `rho_i`: `(n_coeffs,)` each; `alpha`, `beta`,
+    **Arguments:** `L`, `rho_i`: `(n_coeffs,)` each (`L` complex; a real array is read as complex coefficients
+    with zero imaginary parts, e.g. those of a lighting even in φ); `alpha`, `beta`,
     `phi_o`: scalars (shape `()`). One normal and view per call: an array
     of angles is a `ValueError` naming the argument (it is not summed or
     broadcast over; `jax.vmap` evaluates many).
@@ -260,6 +268,8 @@ def reflect_sh(
     **Returns:** a scalar `()`.
     """
     L = as_float_array(L, "L", complex_ok=True)
+    if not jnp.issubdtype(L.dtype, jnp.complexfloating):  # real-valued complex coefficients: keep the phases
+        L = jax.lax.complex(L, jnp.zeros_like(L))
     rho_i = as_float_array(rho_i, "rho_i")
     if L.ndim != 1 or rho_i.shape != L.shape:
         raise ValueError(f"`L` and `rho_i` must both have shape (n_coeffs,), got {L.shape} and {rho_i.shape}")

@@ -1,0 +1,112 @@
+"""The light-field functions (R&H 2001 eqs. 5-10) on inputs the first tests missed: real-valued lighting
+coefficients, azimuthal rules coarser than the band limit, and views below the horizon.
+
+References are independent of jaxsh: `scipy.special.sph_harm_y` and NumPy quadrature of the reflection integral.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.special import sph_harm_y
+
+import jaxsh
+from jaxsh._lightfield import _azimuth_spectrum
+
+
+def _ylm(lmax, theta, phi):
+    """Complex SH `(..., (lmax+1)^2)` in the flat order, by scipy (Condon-Shortley phase, as `jaxsh.complex_sh`)."""
+    return np.stack([sph_harm_y(l, m, theta, phi) for l in range(lmax + 1) for m in range(-l, l + 1)], -1)
+
+
+def _transfer_np(ti, to, dp):
+    return np.cos(ti) * (1 + 0.5 * np.cos(to) + 0.4 * np.sin(ti) * np.sin(to) * np.cos(dp)
+                         + 0.2 * (np.sin(ti) * np.sin(to)) ** 2 * np.cos(2 * dp))
+
+
+def _transfer_j(ti, to, dp):
+    return jnp.cos(ti) * (1 + 0.5 * jnp.cos(to) + 0.4 * jnp.sin(ti) * jnp.sin(to) * jnp.cos(dp)
+                          + 0.2 * (jnp.sin(ti) * jnp.sin(to)) ** 2 * jnp.cos(2 * dp))
+
+
+def _rot(alpha, beta):
+    ry = np.array([[np.cos(alpha), 0, np.sin(alpha)], [0, 1, 0], [-np.sin(alpha), 0, np.cos(alpha)]])
+    rz = np.array([[np.cos(beta), -np.sin(beta), 0], [np.sin(beta), np.cos(beta), 0], [0, 0, 1]])
+    return rz @ ry
+
+
+def _brute_reflection(L, lmax, alpha, beta, theta_o, phi_o, nt=120, nphi=128):
+    """$B = \\int L(R_{\\alpha,\\beta}\\omega_i')\\,\\hat\\rho(\\omega_i', \\omega_o')\\,d\\omega_i'$ over the upper
+    hemisphere (Gauss-Legendre in cos θ, uniform in φ)."""
+    x, w = np.polynomial.legendre.leggauss(nt)
+    ti = np.arccos(0.5 * (x + 1))
+    phi = 2 * np.pi * np.arange(nphi) / nphi
+    TI, PI = np.meshgrid(ti, phi, indexing="ij")
+    wi = np.stack([np.sin(TI) * np.cos(PI), np.sin(TI) * np.sin(PI), np.cos(TI)], -1) @ _rot(alpha, beta).T
+    th, ph = np.arccos(np.clip(wi[..., 2], -1, 1)), np.arctan2(wi[..., 1], wi[..., 0])
+    lv = (_ylm(lmax, th, ph) @ L).real
+    return np.sum(lv * _transfer_np(TI, theta_o, phi_o - PI) * 0.5 * w[:, None]) * 2 * np.pi / nphi
+
+
+def test_reflect_sh_with_real_valued_lighting_coefficients_keeps_the_phases(rng):
+    """A lighting even in φ has real complex coefficients, $L_{l,-m} = (-1)^m L_{lm}$; passed as a float array they
+    went through the phases $e^{im\\beta}$, $e^{iq\\phi_o}$ cast to that real dtype (imaginary parts dropped): -1.59
+    against the integral's -1.44 in the auditor's case. Float and complex input must both equal the integral."""
+    lmax = 3
+    n = (lmax + 1) ** 2
+    L = np.zeros(n)
+    for l in range(lmax + 1):
+        L[l * l + l] = rng.normal()
+        for m in range(1, l + 1):
+            r = rng.normal()
+            L[l * l + l + m], L[l * l + l - m] = r, (-1) ** m * r
+    alpha, beta, theta_o, phi_o = 0.9, 2.3, 0.6, 1.1
+    ref = _brute_reflection(L.astype(complex), lmax, alpha, beta, theta_o, phi_o)
+    rho_i = jaxsh.brdf_incident_coefficients(_transfer_j, theta_o, lmax)
+    for lin in (jnp.asarray(L), jnp.asarray(L, complex)):
+        got = float(jaxsh.reflect_sh(lin, rho_i, alpha, beta, phi_o))
+        assert got == pytest.approx(ref, abs=1e-10), (lin.dtype, got, ref)
+
+
+def test_azimuth_rule_coarser_than_the_band_limit_folds_instead_of_clamping():
+    """With `lmax + 1` beyond the `n_phi`-point rule's `n_phi // 2 + 1` frequencies, order q must get the rule's own
+    value, that of frequency $\\min(q, K - q)$ ($\\cos q\\Delta_k = \\cos (K - q)\\Delta_k$ on the grid); the index was
+    clamped to the last frequency (G_66 of cos 66Δ on 128 points came out 0 for π)."""
+    K, lm = 128, 70
+    dk = 2 * np.pi * np.arange(K) / K
+    g = np.cos(66 * dk) + 0.5 * np.cos(3 * dk)
+    want = np.array([np.sum(g * np.cos(q * dk)) * 2 * np.pi / K for q in range(lm + 1)])
+    np.testing.assert_allclose(np.asarray(_azimuth_spectrum(jnp.asarray(g), lm, K)), want, atol=1e-12)
+    assert want[66] == pytest.approx(np.pi)
+
+    # end to end: `brdf_incident_coefficients` with an 8-point rule at lmax 6 equals NumPy's 8-point rule on the same
+    # Gauss-Legendre nodes in cos θ_i (orders 5 and 6 lie past the rule's 5 frequencies)
+    lmax, nphi, theta_o = 6, 8, 0.7
+
+    def tn(ti, to, dp):
+        return np.cos(ti) * (1 + (np.sin(ti) * np.sin(to)) ** 5 * np.cos(5 * dp))
+
+    def tj(ti, to, dp):
+        return jnp.cos(ti) * (1 + (jnp.sin(ti) * jnp.sin(to)) ** 5 * jnp.cos(5 * dp))
+
+    x, w = np.polynomial.legendre.leggauss(96)
+    phi = 2 * np.pi * np.arange(nphi) / nphi
+    TI, PI = np.meshgrid(np.arccos(0.5 * (x + 1)), phi, indexing="ij")
+    rule = np.einsum("ijk,ij->k", _ylm(lmax, TI, PI), tn(TI, theta_o, -PI) * 0.5 * w[:, None]).real * 2 * np.pi / nphi
+    got = np.asarray(jaxsh.brdf_incident_coefficients(tj, theta_o, lmax, n_theta=96, n_phi=nphi))
+    np.testing.assert_allclose(got, rule, atol=1e-13)
+    assert abs(rule[6 * 6 + 6 + 5]) > 1e-2  # the order that was clamped away
+
+
+@pytest.mark.parametrize("theta_o", [2.0, -0.3, 7.0])
+def test_incident_coefficients_reject_a_view_below_the_horizon(theta_o):
+    with pytest.raises(ValueError, match="theta_o"):
+        jaxsh.brdf_incident_coefficients(_transfer_j, theta_o, 2)
+
+
+def test_incident_coefficients_honour_dtype():
+    """`dtype=float32` with a Python-float view angle returned float64 (the scalar's dtype won the promotion)."""
+    out = jaxsh.brdf_incident_coefficients(_transfer_j, 0.6, 3, n_theta=32, n_phi=16, dtype=jnp.float32)
+    assert out.dtype == jnp.float32
+    ref = jaxsh.brdf_incident_coefficients(_transfer_j, 0.6, 3, n_theta=32, n_phi=16)
+    assert ref.dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=2e-6)
