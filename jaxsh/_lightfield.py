@@ -40,8 +40,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact, Real
 from ._custom_types import SequenceLike
 
-from ._checks import (as_float_array, as_float_scalar, check_dirs, check_dtype, check_lmax, check_positive_int, check_values,
-                      lmax_from_size)
+from ._checks import (as_float_array, as_float_scalar, check_dtype, check_lmax, check_nonzero_dirs,
+                      check_positive_int, check_values, lmax_from_size)
 from ._indexing import sh_degrees, sh_lambda, sh_orders
 from ._rotation import wigner_d_y
 from ._sh import complex_sh
@@ -189,7 +189,7 @@ def light_field_basis(
     lmax = check_lmax(lmax)
     alpha = as_float_scalar(alpha, "alpha")
     beta = as_float_scalar(beta, "beta")
-    wo_local = check_dirs(wo_local, "wo_local")
+    wo_local = check_nonzero_dirs(wo_local, "wo_local")
     if wo_local.shape != (3,):
         raise ValueError(f"`wo_local` must have shape (3,), got {tuple(wo_local.shape)}")
     d = wigner_d_y(alpha, lmax)  # (n, n) block-diagonal in the complex basis

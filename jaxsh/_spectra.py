@@ -186,8 +186,10 @@ def recoverable_orders(A: Real[ArrayLike, " L"], noise: float) -> tuple[np.ndarr
     $l^* \\approx \\sqrt{\\ln(1/\\epsilon)}/\\sigma \\sim 1/\\sigma$.
     """
     a = np.abs(np.asarray(A, dtype=np.float64))
-    if a.ndim != 1:
-        raise ValueError(f"`A` must have shape (lmax+1,), got {a.shape}")
+    if a.ndim != 1 or a.size == 0:
+        raise ValueError(f"`A` must have shape (lmax+1,) with lmax >= 0, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"`A` must be finite, got {a[~np.isfinite(a)][:4]}")
     if not noise > 0:
         raise ValueError(f"`noise` must be > 0, got {noise}")
     ok = a > noise * a.max()

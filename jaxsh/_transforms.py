@@ -93,8 +93,8 @@ def _flat_gather_indices(lmax: int):
 
 def _check_image(image):
     image = as_float_array(image, "image")
-    if image.ndim not in (2, 3):
-        raise ValueError(f"`image` must have shape (H, W) or (H, W, C), got {tuple(image.shape)}")
+    if image.ndim not in (2, 3) or image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"`image` must have shape (H, W) or (H, W, C) with H, W >= 1, got {tuple(image.shape)}")
     return image
 
 
@@ -142,6 +142,8 @@ def project_latlong(
             f"lmax < W/2 (here lmax <= {max(min((h - 1) // 2, (w - 1) // 2), 0)}); use a larger image, "
             "a smaller `lmax`, or pass allow_aliasing=True"
         )
+    if image.ndim == 3 and image.shape[2] == 0:  # no channel: no coefficient (the row DFT's split has no width)
+        return jnp.zeros(((lmax + 1) ** 2, 0), image.dtype)
     return _project(image, lmax)
 
 
@@ -383,6 +385,8 @@ def fit_sh(
         weights = as_float_array(weights, "weights")
         if weights.shape != (n,):
             raise ValueError(f"`weights` must have shape ({n},), got {tuple(weights.shape)}")
+    if jnp.ndim(ridge) != 0:
+        raise ValueError(f"`ridge` must be a scalar (one lambda for every coefficient), got shape {jnp.shape(ridge)}")
     dtype = jnp.result_type(dirs.dtype, values.dtype)
     return _fit_sh(dirs.astype(dtype), values.astype(dtype), lmax, weights, jnp.asarray(ridge, dtype))
 

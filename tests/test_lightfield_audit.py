@@ -110,3 +110,26 @@ def test_incident_coefficients_honour_dtype():
     ref = jaxsh.brdf_incident_coefficients(_transfer_j, 0.6, 3, n_theta=32, n_phi=16)
     assert ref.dtype == jnp.float64
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=2e-6)
+
+
+def test_edge_inputs_of_the_transforms_and_spectra_are_named_errors_or_empty_results():
+    """Inputs the audit found answered by a raw error, a wrong message or silently: zero channels (`project_latlong`
+    divided by zero; `synthesize_latlong` already returned an empty map), an image without rows (the message said
+    `lmax` <= 0 while rejecting 0), a `ridge` with a shape (applied per coefficient, or a broadcasting error), a zero
+    view (`light_field_basis` named `dirs`), an empty or NaN spectrum (`recoverable_orders`: NumPy's reduction error,
+    or l* = -1 with no word)."""
+    out = jaxsh.project_latlong(np.zeros((4, 8, 0)), 1)
+    assert out.shape == (4, 0)
+    assert jaxsh.synthesize_latlong(np.zeros((4, 0)), 4, 8).shape == (4, 8, 0)
+    with pytest.raises(ValueError, match="`image`.*H, W >= 1"):
+        jaxsh.project_latlong(np.zeros((0, 4)), 0)
+    dirs = np.random.default_rng(0).normal(size=(30, 3))
+    for ridge in (np.full(16, 0.1), np.full(2, 0.1)):
+        with pytest.raises(ValueError, match="`ridge` must be a scalar"):
+            jaxsh.fit_sh(dirs, np.ones(30), 3, None, ridge)
+    with pytest.raises(ValueError, match="`wo_local`"):
+        jaxsh.light_field_basis(0.3, 0.2, [0.0, 0.0, 0.0], 2)
+    with pytest.raises(ValueError, match="`A` must have shape"):
+        jaxsh.recoverable_orders(np.array([]), 0.1)
+    with pytest.raises(ValueError, match="`A` must be finite"):
+        jaxsh.recoverable_orders(np.array([1.0, np.nan, 0.5]), 0.1)
