@@ -112,7 +112,7 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
 from ._host_random import host_rng
-from ._factorize_dual import _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
+from ._factorize_dual import _check_region_arg, _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
                                 mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
@@ -150,7 +150,9 @@ class FactorizationResult(Solution):
       first stage (at the final $\\mu$ with `refine_mu`), the input of eq. 26.
     - `source`: `SourceEstimate` (or None when `find_sigma=False`).
     - `std_errors`: `TorranceSparrow` (from the Jacobian of the profiled
-      residual of the final stage; `kd` errors equal `ks` errors).
+      residual of the final stage; `kd` errors equal `ks` errors; μ's from
+      the curvature of its search's profile, inf with `lighting_method="dual"`,
+      whose profile is of the dual model, not the refined one).
     - `status`: with the refinement, the worst of its search's outcome
       (`max_steps_reached` when the σ grids stop wider than the tolerance),
       `nonfinite`, `no_signal` and the status of stage 1's eq.-25 solve at the
@@ -168,7 +170,12 @@ class FactorizationResult(Solution):
     - `stats`: `num_mu_candidates`, `num_sigma_candidates` (the refinement's
       $\\sigma$ values, 16 per grid; 0 without the refinement), `num_steps_golden` (the $K_s$ searches of the final
       stage-1 solve, per channel), `num_steps_bisection` (eq. 26; 0 without
-      `find_sigma`), `n_obs`.
+      `find_sigma`), `n_obs`, `at_bound` (`{"mu": bool, "sigma": bool}`: the
+      estimate stopped at an end of its search range, $\\mu \\in [1.05, 3.5]$
+      (stage 1's grid, whose ends the searches reach exactly) or
+      $\\sigma \\in [10^{-3}, 2]$ (within 0.1 %): the data do not place it inside;
+      its standard error is then infinite and `status` stays `converged`, as
+      `fit_brdf`'s `at_bound`).
     - `dual`: with `lighting_method="dual"`, the `DualLightingResult` of the
       first stage (the angular-space lighting image of fig. 8 at the stage-1
       BRDF, the input of eq. 26); otherwise None. `filtered_sh` is then that
@@ -411,7 +418,7 @@ def find_source(
     if (lmax + 1) ** 2 != coeffs.shape[0] or lmax < 1:
         raise ValueError(f"`coeffs` must have shape (n_coeffs, C) with lmax >= 1, got {tuple(coeffs.shape)}")
     dt = coeffs.dtype
-    h = int(height)
+    h = check_int(height, "height", lo=4)
     return _find_source(coeffs, check_region(region, h, dt), h, lmax)
 
 
@@ -645,10 +652,13 @@ def factorize(
       resolution, measured 0.08 rad off on the search grid, 0.02 on the
       finer one). Default (None): the largest height
       with at least 16 samples per texel, $\\lfloor\\sqrt{N/32}\\rfloor$ for
-      $N$ samples (used by the search), clipped to [8, 64] (7,980 samples:
+      $N$ samples of positive weight (used by the search: weight-0 padding does
+      not move the grid), clipped to [8, 64] (7,980 samples:
       15; measured on a 64² 3-view sphere: $K_s$ 5–7 % low and $\\mu$ 6 %
       low, as the paper's fig. 11 finds under unknown lighting; at height 32,
-      about 4 samples per texel, $K_s$ 13 % and $\\mu$ 19 % low).
+      about 4 samples per texel, $K_s$ 13 % and $\\mu$ 19 % low). At least 5:
+      the 4 × 8 grid's quadrature does not integrate the $l \\le 2$ harmonics
+      exactly (max $|PY - I|$ 0.094; below 2e-15 from 5 on).
     - `throw`: raise `solvers.SolveError` unless the status is `converged`.
 
     **Returns:** `FactorizationResult` ($K_d + K_s = 1$ per channel; the
@@ -681,7 +691,7 @@ def factorize(
     if lighting_method not in ("sh", "dual"):
         raise ValueError(f"`lighting_method` must be 'sh' or 'dual', got {lighting_method!r}")
     if dual_height is not None:
-        dual_height = check_int(dual_height, "dual_height", lo=4)
+        dual_height = check_int(dual_height, "dual_height", lo=5)
     if lighting_method == "dual" and obs.transfer is not None:
         raise ValueError("factorize(lighting_method='dual'): concave objects (`obs.transfer` given) are not supported "
                          "(R&H sec. 6.4: the diffuse term no longer depends on 9 coefficients); use 'sh'")
@@ -719,7 +729,9 @@ def factorize(
         idx = np.sort(pos[_draw_without_replacement(key, n_pos, int(search_pixels))])
         sub = obs.subset(idx)
     if lighting_method == "dual" and dual_height is None:
-        dual_height = int(np.clip(np.floor(np.sqrt(sub.n_samples / 32.0)), 8, 64))
+        # from the samples of positive weight: padding (`shard_observations`, `pad_observations`) must not move the
+        # grid (one padding sample took the height from 22 to 24: mu 1.454 for 1.561 on 2 devices)
+        dual_height = int(np.clip(np.floor(np.sqrt((n_pos if sub is obs else sub.n_samples) / 32.0)), 8, 64))
     # Stage 1: nested 1-D searches over mu (batched grid, then two zooms) and ks (golden, per channel).
     curv_rss = None
     tab = None
@@ -746,13 +758,16 @@ def factorize(
         vertex, c2 = _parabola(t, vals, k)
         if c2 is not None:
             best = vertex
-            # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels
+        if c2 is not None and lighting_method == "sh":
+            # curvature of the profiled RSS in t = log(mu - 1), scaled from the subset to all pixels (not of the dual
+            # search's profile: that is another model's RSS than the refined one's whose residual scales it; the
+            # error came out 9-12x the spread of mu over noise draws, so with "dual" std_errors.mu is inf)
             bb_sub = float(_weighted_energy(sub.weights, sub.values))
             curv_rss = c2 * bb_sub * n_pos / (n_pos if sub is obs else sub.n_samples)
         mu = jax.device_put(np.asarray(1.0 + np.exp(best), dt))  # (`jnp.asarray` would compile a conversion)
         its1 = 9 + 7 + 7
     else:
-        mu, its1 = None, 0
+        mu, its1, best = None, 0, None
     dual = None
     rows_obs = None  # the eq.-25 rows of all pixels at the stage-1 mu (direct path with a subset), for the refinement
     blocks = (None, None)  # the eq.-25 blocks at the stage-1 mu on all pixels and on the subset, for the refinement
@@ -792,6 +807,12 @@ def factorize(
     def result(brdf, lighting, source, std, status, iterations, rms, rel, stats, fitted=None):
         if fitted is None:  # eq. 25 of the first stage
             fitted = _stage1_fitted(obs, mu, ks, filtered, lmax, chunk)
+        # a parameter stopped at its search range's end: flagged, and its standard error infinite (as `fit_brdf`)
+        bound = _at_bound(best, None if source is None else brdf.sigma)
+        stats["at_bound"] = {k_: jax.device_put(np.bool_(v)) for k_, v in bound.items()}
+        if bound["mu"] or bound["sigma"]:
+            std = TorranceSparrow.unchecked(std.kd, std.ks, inf0 if bound["mu"] else std.mu,
+                                            inf0 if bound["sigma"] else std.sigma)
         res = FactorizationResult(brdf=brdf, lighting=lighting, filtered_sh=filtered, source=source, std_errors=std,
                                   status=status, iterations=jnp.asarray(iterations), rms=rms, rel_rms=rel, stats=stats,
                                   dual=dual, fitted=fitted)
@@ -822,6 +843,7 @@ def factorize(
             n_pos if sub is obs else sub.n_samples)
         its1 += n_mu
         stats["num_mu_candidates"] = jax.device_put(its1)
+        best = t2
         mu = jax.device_put(np.asarray(1.0 + np.exp(t2), dt))
         mu9 = jax.device_put(np.full((9,), np.asarray(mu)))
         if sub is obs:
@@ -845,6 +867,7 @@ def factorize(
             n_pos if sub is obs else sub.n_samples)  # (as on the table path above)
         its1 += n_mu
         stats["num_mu_candidates"] = jax.device_put(its1)
+        best = t2
         mu = jax.device_put(np.asarray(1.0 + np.exp(t2), dt))
         ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond)
         blocks = (bl_obs, bl_obs if sub is obs else None)
@@ -879,22 +902,6 @@ def _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2, st1):
     finite = jnp.all(jnp.isfinite(ks)) & jnp.isfinite(sigma) & jnp.isfinite(rms)
     status = worst(Status.where(finite, Status.converged, Status.nonfinite), signal_status(data_ss), st_nm, st1)
     return 1.0 - ks, status, its1 + its2
-
-
-def _check_region_arg(region):
-    """`region` = `(direction (3,), radius)` with a finite non-zero direction and a radius in (0, pi], or None."""
-    if region is None:
-        return
-    try:
-        d, r = region
-        d = np.asarray(d, np.float64)
-        r = float(r)
-    except (TypeError, ValueError):
-        raise ValueError(f"`region` must be (direction (3,), radius in radians) or None, got {region!r}") from None
-    if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.any(d != 0):
-        raise ValueError(f"`region`'s direction must be a finite non-zero 3-vector, got {region[0]!r}")
-    if not (np.isfinite(r) and 0 < r <= np.pi):
-        raise ValueError(f"`region`'s radius must be in (0, pi] radians, got {r}")
 
 
 def _draw_without_replacement(key, n: int, m: int) -> np.ndarray:
@@ -1213,6 +1220,21 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
             ts, vals = ts2, vals2
             k = int(np.argmin(vals))
     return (*_parabola(ts, vals, k), n)
+
+
+def _at_bound(t_mu, sigma) -> dict:
+    """`{"mu": bool, "sigma": bool}`: the final $t = \\log(\\mu - 1)$ (a host float, None without Fresnel) at an end of
+    `_MU_T_RANGE` (the grids hold the ends exactly), and $\\log\\sigma$ (None without `find_sigma`) within
+    `_AT_BOUND_TOL` of an end of `_SIGMA_RANGE` (the σ grids approach an end by their spacing only)."""
+    mu_b = t_mu is not None and not _MU_T_RANGE[0] + 1e-9 < float(t_mu) < _MU_T_RANGE[1] - 1e-9
+    sigma_b = False
+    if sigma is not None:
+        ls = float(np.log(np.asarray(sigma, np.float64)))
+        sigma_b = bool(np.isfinite(ls)) and not np.log(_SIGMA_RANGE[0]) + _AT_BOUND_TOL < ls < np.log(_SIGMA_RANGE[1]) - _AT_BOUND_TOL
+    return {"mu": bool(mu_b), "sigma": bool(sigma_b)}
+
+
+_AT_BOUND_TOL = 1e-3  # in log sigma: 0.1 % from an end of `_SIGMA_RANGE` counts as at the end
 
 
 def _parabola(t, vals, k):

@@ -143,10 +143,29 @@ def _stage1_final_dual(obs: Observations, mu, height: int):
     return ks, steps
 
 
+def _check_region_arg(region):
+    """`region` = `(direction (3,), radius)` with a finite non-zero direction and a radius in (0, pi], or None."""
+    if region is None:
+        return
+    try:
+        d, r = region
+        d = np.asarray(d, np.float64)
+        r = float(r)
+    except (TypeError, ValueError):
+        raise ValueError(f"`region` must be (direction (3,), radius in radians) or None, got {region!r}") from None
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.any(d != 0):
+        raise ValueError(f"`region`'s direction must be a finite non-zero 3-vector, got {region[0]!r}")
+    if not (np.isfinite(r) and 0 < r <= np.pi):
+        raise ValueError(f"`region`'s radius must be in (0, pi] radians, got {r}")
+
+
+
 def check_region(region, height: int, dt):
-    """The user's `region` as jnp arrays, checked to contain a texel of the `height` grid (or None)."""
+    """The user's `region` as jnp arrays, checked (`_check_region_arg`) and to contain a texel of the `height` grid
+    (or None)."""
     if region is None:
         return None
+    _check_region_arg(region)
     rdir = np.asarray(region[0], np.float64)
     rdir = rdir / np.linalg.norm(rdir)
     if not np.any(np.asarray(jaxsh.latlong_directions(height, 2 * height)) @ rdir >= np.cos(float(region[1]))):

@@ -384,6 +384,8 @@ def fit_manifest(manifest_path, out_dir, progress: bool = True, mesh=None) -> di
         result["undetermined"] = {k: bool(und[k]) for k in ("mu", "sigma")}
         if "ks" in und:  # per texel and channel ("kd_ks"): the observed pixels' values that ks.exr holds as 0
             result["undetermined"]["ks_values"] = int(np.count_nonzero(np.asarray(und["ks"])[seen]))
+    if known is None and m["brdf"] is None:  # factorization: mu (with Fresnel), sigma at an end of their search ranges
+        result["at_bound"] = {k: bool(v) for k, v in res.stats["at_bound"].items()}
     if m["brdf"] is not None:
         result["lighting"]["std_errors"] = _json(res.std_errors)
         result["lighting"]["supported_lmax"] = [int(x) for x in np.asarray(res.supported_lmax).reshape(-1)]  # ints (results.md)

@@ -73,7 +73,7 @@ def pixel_mesh(devices: Sequence | int | None = None, axis: str = "pixels") -> M
     """
     if devices is None:
         devs = jax.devices()
-    elif isinstance(devices, (bool, np.bool_, str, bytes)):
+    elif isinstance(devices, (bool, np.bool_, str, bytes, float, np.floating)):
         raise ValueError(f"`devices` must be a list of devices, a count or None, got {devices!r}")
     elif isinstance(devices, (int, np.integer)):
         avail = jax.devices()
@@ -87,6 +87,8 @@ def pixel_mesh(devices: Sequence | int | None = None, axis: str = "pixels") -> M
         bad = [d for d in devs if not isinstance(d, jax.Device)]
         if bad:
             raise ValueError(f"`devices` must hold jax devices (e.g. from jax.devices()), got {bad[0]!r}")
+        if len(set(devs)) != len(devs):  # a mesh over one device twice: sharding failed later with a runtime error
+            raise ValueError(f"`devices` lists a device more than once: {devs!r}")
     return Mesh(np.asarray(devs, dtype=object), (axis,))
 
 

@@ -221,6 +221,7 @@ def test_fit_factorizes_unknown_lighting_and_brdf(tmp_path):
     np.testing.assert_allclose(r["brdf"]["ks"], ks / (kd + ks), atol=0.03)
     np.testing.assert_allclose(np.add(r["brdf"]["kd"], r["brdf"]["ks"]), 1.0, atol=1e-9)
     assert len(r["lighting"]["coeffs"]) == 256 and len(r["lighting"]["directional"]) == 1
+    assert r["at_bound"] == {"mu": False, "sigma": False}  # results.md: written for a factorization too
 
 
 def test_fit_inverse_lighting_with_known_brdf(tmp_path):

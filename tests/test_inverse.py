@@ -873,6 +873,38 @@ def test_factorize_mu_standard_error_has_the_units_of_mu():
     assert 0.5 < np.mean(ses) / spread < 2.0, (np.mean(ses), spread)
 
 
+@pytest.mark.parametrize("mu_true, end", [(8.0, 3.5), (1.02, 1.05)])
+def test_factorize_flags_mu_at_an_end_of_its_range(mu_true, end):
+    """A Fresnel index outside the factorization's range ($\\mu \\in [1.05, 3.5]$) stops at its end. That used to
+    come back as a plain `converged` estimate whose only sign was an infinite `std_errors.mu`; `stats["at_bound"]`
+    now says it, as `fit_brdf`'s does, and neither the search nor σ's flag moves. Checked on images rendered by
+    `render_reference` (not the fitted model), both with the joint μ search (the default) and without it."""
+    brdf = solvers.TorranceSparrow(jnp.array([0.6, 0.45, 0.3]), jnp.array([0.3, 0.3, 0.3]), jnp.asarray(mu_true),
+                                   jnp.asarray(0.1))
+    cap = solvers.sphere_capture(brdf, size=32, n_views=3, noise=0.0)
+    obs = solvers.observations(cap.gbuffers, cap.clean)
+    for refine_mu in (True, False):
+        r = solvers.factorize(obs, 12, refine_mu=refine_mu)
+        assert float(r.brdf.mu) == pytest.approx(end, rel=1e-12)
+        assert {k: bool(v) for k, v in r.stats["at_bound"].items()} == {"mu": True, "sigma": False}
+        assert np.isinf(float(r.std_errors.mu)) and np.isfinite(float(r.std_errors.sigma))
+        assert float(r.brdf.sigma) == pytest.approx(0.1, rel=0.15)
+
+
+def test_factorize_at_bound_is_false_inside_the_ranges(factorization):
+    """On the fixture's capture (μ 1.6, σ 0.1) neither flag is set and both errors are finite. The rule itself on
+    given values: μ's flag at the exact ends of its grid's range (the searches reach them exactly), σ's within 0.1 %
+    in log σ of an end (its grids approach an end by their spacing), none without Fresnel or σ."""
+    assert {k: bool(v) for k, v in factorization.stats["at_bound"].items()} == {"mu": False, "sigma": False}
+    assert np.isfinite(float(factorization.std_errors.mu)) and np.isfinite(float(factorization.std_errors.sigma))
+    from solvers import _factorize as F
+
+    assert not any(F._at_bound(None, None).values())
+    assert F._at_bound(F._MU_T_RANGE[0], 0.5) == {"mu": True, "sigma": False}
+    assert F._at_bound(0.0, 2.0 * (1 - 1e-4)) == {"mu": False, "sigma": True}
+    assert F._at_bound(0.0, 1e-3 * (1 + 2e-3)) == {"mu": False, "sigma": False}
+
+
 def test_inverse_lighting_and_factorize_accept_float32(obs_noisy, factorization):
     obs32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, obs_noisy)
     t32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), TRUTH)
@@ -1050,3 +1082,52 @@ def test_inverse_lighting_dual_nonneg_does_not_depend_on_the_image_units(capture
         img, ref = np.asarray(r.image) / s, np.asarray(base.image)
         assert np.linalg.norm(img - ref) / np.linalg.norm(ref) < 1e-6, s
         np.testing.assert_allclose(np.asarray(r.coeffs9) / s, np.asarray(base.coeffs9), rtol=1e-6, atol=1e-9)
+
+
+def test_dual_default_grid_ignores_weight_zero_padding(obs_noisy):
+    """`lighting_method="dual"` took its default search grid from all samples, weight-0 padding included: on 4,607
+    samples (height floor(sqrt(4607/32)) = 11) one padding sample (`pad_observations(obs, 2)`, what
+    `shard_observations` does on 2 devices) made it 12, and mu 1.454 for 1.561. Padded and unpadded must agree."""
+    obs = obs_noisy.subset(np.arange(4607))
+    ref = solvers.factorize(obs, 6, lighting_method="dual", refine=False)
+    for padded in (solvers.pad_observations(obs, 2), solvers.pad_observations(obs, bucket=True)):
+        assert padded.n_samples > obs.n_samples
+        r = solvers.factorize(padded, 6, lighting_method="dual", refine=False)
+        assert r.dual.image.shape == ref.dual.image.shape == (22, 44, 3)
+        np.testing.assert_allclose(np.asarray(r.brdf.ks), np.asarray(ref.brdf.ks), rtol=1e-6)
+        assert float(r.brdf.mu) == pytest.approx(float(ref.brdf.mu), rel=1e-6)
+
+
+def test_dual_refined_mu_error_is_not_claimed(obs_noisy):
+    """With `"dual"` μ's search profile is the dual model's RSS, not the refined joint model's whose residual scaled
+    its curvature: the error came out 9-12x the spread of μ over noise draws. It is now inf (not estimated); σ's
+    and K_s's, from the refined model itself, stay finite."""
+    r = solvers.factorize(obs_noisy, 8, lighting_method="dual", search_pixels=3000)
+    assert np.isinf(float(r.std_errors.mu))
+    assert np.all(np.isfinite(np.asarray(r.std_errors.ks))) and np.isfinite(float(r.std_errors.sigma))
+
+
+def test_region_height_and_mesh_arguments_are_checked():
+    """`find_source` checked `region` only for containing a texel (a zero direction or NaN radius said "enlarge its
+    radius", a 2-vector failed in a matmul, `(d,)` raised IndexError, a radius of 7 passed) and truncated a float
+    `height`; `dual_height` 4 gives a grid whose quadrature misses the l <= 2 harmonics by 0.094; `pixel_mesh` took a
+    float count (TypeError) and one device twice (a runtime error when sharding)."""
+    coeffs = np.zeros((16, 3))
+    coeffs[0] = 1.0
+    bad = [((np.zeros(3), 0.3), "direction"), ((np.array([0.0, 0, 1]), np.nan), "radius"),
+           ((np.array([0.0, 1]), 0.3), "direction"), ((np.array([0.0, 0, 1]),), "region"),
+           ((np.array([0.0, 0, 1]), 7.0), "radius")]
+    for region, word in bad:
+        with pytest.raises(ValueError, match="`region`") as e:
+            solvers.find_source(coeffs, region=region)
+        assert word in str(e.value) and "enlarge" not in str(e.value), str(e.value)
+    with pytest.raises(ValueError, match="`height`"):
+        solvers.find_source(coeffs, height=2.7)
+    cap = solvers.sphere_capture(TRUTH, size=16, noise=0.0)
+    obs = solvers.observations(cap.gbuffers, cap.clean)
+    with pytest.raises(ValueError, match="`dual_height`"):
+        solvers.factorize(obs, 4, lighting_method="dual", dual_height=4)
+    with pytest.raises(ValueError, match="`devices`"):
+        solvers.pixel_mesh(2.0)
+    with pytest.raises(ValueError, match="more than once"):
+        solvers.pixel_mesh([jax.devices()[0]] * 2)
