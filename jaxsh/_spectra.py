@@ -216,8 +216,13 @@ def torrance_sparrow_spectrum(
     P_l(\\omega\\cdot R)\\,d\\omega$ (the m = 0 part; the lobe is exactly symmetric
     about $R$ only at normal exitance). Quadrature: Gauss-Legendre in
     $\\cos$ of the angle from $R$ on $[\\cos(\\min(\\pi, 12\\sigma)), 1]$ ×
-    uniform azimuth. R&H eq. 20 approximates this by $\\exp(-(\\sigma l)^2)$
-    (times $F(\\mu, \\theta_o)$ if `mu` is given).
+    the lit arc of azimuth, both split where the horizon starts to cut the lobe
+    (`n_theta` nodes on each side, `n_phi` on the arc), so every part is
+    smooth: against a brute-force integral in the normal frame, σ = 0.3,
+    errors ≤ 1e-12 at $\\theta_o$ = 0, 1.0 and 1.4 (a uniform azimuth over the
+    horizon's jump gave 1.9e-4 and 1.4e-3 at 1.0 and 1.4). R&H eq. 20
+    approximates this by $\\exp(-(\\sigma l)^2)$ (times $F(\\mu, \\theta_o)$ if
+    `mu` is given).
 
     **Arguments:** `sigma` > 0; `theta_o` in $[0, \\pi/2)$; `mu` ≥ 1 (the
     index of refraction) or None; all scalars. Out-of-range values are an
@@ -250,27 +255,44 @@ def torrance_sparrow_spectrum(
     if mu is not None:
         mu = mu.astype(dt)
     x, wx = np.polynomial.legendre.leggauss(nt)
-    phi = 2 * np.pi * (np.arange(npf) + 0.5) / npf
-    umin = jnp.cos(jnp.minimum(12.0 * sigma, jnp.pi)).astype(dt)  # the lobe beyond 12σ is below e^-36
-    u = 0.5 * (1 - umin) * jnp.asarray(x, dt) + 0.5 * (1 + umin)  # cos of angle from R
-    wu = 0.5 * (1 - umin) * jnp.asarray(wx, dt)
-    # Frame: normal n = +z, view in the xz plane at theta_o; R = reflect(view) = (-sin, 0, cos).
+    xp, wp = np.polynomial.legendre.leggauss(npf)
     st, ct = jnp.sin(theta_o), jnp.cos(theta_o)
+    # cos of the angle from R: [umin, 1], split where the horizon starts to cut the cone about R (angle
+    # pi/2 - theta_o, u = sin theta_o): inside it every azimuth is lit, outside only |phi| < phi*(u), so each
+    # part is smooth and gets its own Gauss-Legendre rule (one rule across the kink converged like 1/n)
+    umin = jnp.cos(jnp.minimum(12.0 * sigma, jnp.pi)).astype(dt)  # the lobe beyond 12σ is below e^-36
+    umin = jnp.maximum(umin, -st)  # beyond the angle pi/2 + theta_o from R no direction is above the horizon
+    uc = jnp.clip(st, umin, 1.0)
+    xs, ws = jnp.asarray(x, dt), jnp.asarray(wx, dt)
+    # on the cut part the arc's half-width phi* goes like sqrt(distance) at both ends (pi - c sqrt(uc - u) at
+    # uc; c sqrt(u + sin theta_o) where the cone leaves the hemisphere): u = umin + (uc - umin)(1 - cos pi t)/2
+    # makes it smooth in t (errors 1e-12, against 3e-6 at theta_o = 1.4 with the rule in u)
+    t = 0.5 * (xs + 1.0)
+    u_cut = umin + 0.5 * (uc - umin) * (1.0 - jnp.cos(jnp.pi * t))
+    w_cut = 0.5 * ws * 0.5 * (uc - umin) * jnp.pi * jnp.sin(jnp.pi * t)
+    u = jnp.concatenate([u_cut, 0.5 * (1 - uc) * xs + 0.5 * (1 + uc)])
+    wu = jnp.concatenate([w_cut, 0.5 * (1 - uc) * ws])
+    # Frame: normal n = +z, view in the xz plane at theta_o; R = reflect(view) = (-sin, 0, cos); about R,
+    # w = u R + sqrt(1-u^2) (cos phi e1 + sin phi e2) has cos_i = u ct + sqrt(1-u^2) st cos phi, lit for
+    # |phi| < phi* = arccos(-u ct / (sqrt(1-u^2) st)): the azimuthal rule covers that arc only (exactly, no
+    # jump inside it; the integrand is even in phi)
     wo = jnp.stack([st, jnp.zeros_like(st), ct])
     r = jnp.stack([-st, jnp.zeros_like(st), ct])
     e1 = jnp.stack([ct, jnp.zeros_like(st), st])  # ⟂ R, in the plane
     e2 = jnp.array([0.0, 1.0, 0.0], dt)
-    sv = jnp.sqrt(jnp.clip(1 - u * u, 0.0))[:, None]
-    cp = jnp.asarray(np.cos(phi), dt)[None, :]
-    sp = jnp.asarray(np.sin(phi), dt)[None, :]
-    wi = u[:, None, None] * r[None, None, :] + (sv * cp)[..., None] * e1[None, None, :] + (sv * sp)[..., None] * e2[None, None, :]  # (nt, np, 3)
+    sv = jnp.sqrt(jnp.clip(1 - u * u, 0.0))
+    tiny = jnp.finfo(dt).tiny
+    phi_max = jnp.arccos(jnp.clip(-u * ct / jnp.maximum(sv * st, tiny), -1.0, 1.0))  # (2 nt,)
+    phi = phi_max[:, None] * jnp.asarray(xp, dt)[None, :]
+    cp, sp = jnp.cos(phi), jnp.sin(phi)
+    sv = sv[:, None]
+    wi = u[:, None, None] * r[None, None, :] + (sv * cp)[..., None] * e1[None, None, :] + (sv * sp)[..., None] * e2[None, None, :]  # (2 nt, np, 3)
     cos_i = wi[..., 2]
-    h = wi + wo[None, None, :]
-    h = h / jnp.linalg.norm(h, axis=-1, keepdims=True)
-    theta_h = jnp.arccos(jnp.clip(h[..., 2], -1.0, 1.0))
+    h = wi + wo[None, None, :]  # the half vector, unnormalized: its angle from n by atan2 (no arccos near 1)
+    theta_h = jnp.arctan2(jnp.sqrt(h[..., 0] ** 2 + h[..., 1] ** 2), h[..., 2])
     s = jnp.exp(-((theta_h / sigma) ** 2)) / (jnp.pi * sigma**2)
     f = jnp.where(cos_i > 0, s / (4 * ct), 0.0)
     if mu is not None:
         f = f * fresnel_normalized(ct, mu)
-    fz = jnp.sum(f, axis=1) * (2 * jnp.pi / npf)  # azimuthal integral, (nt,)
+    fz = jnp.sum(f * jnp.asarray(wp, dt)[None, :], axis=1) * phi_max  # azimuthal integral over the lit arc, (2 nt,)
     return jnp.einsum("n,nl->l", wu * fz, legendre_p(u, lmax))

@@ -133,3 +133,33 @@ def test_edge_inputs_of_the_transforms_and_spectra_are_named_errors_or_empty_res
         jaxsh.recoverable_orders(np.array([]), 0.1)
     with pytest.raises(ValueError, match="`A` must be finite"):
         jaxsh.recoverable_orders(np.array([1.0, np.nan, 0.5]), 0.1)
+
+
+def _ts_lobe_brute(sigma, lmax, theta_o, n=400):
+    """$A_l = \\int \\hat\\rho_s(\\omega)\\,P_l(\\omega\\cdot R)\\,d\\omega$ over the upper hemisphere in the *normal* frame:
+    Gauss-Legendre in cos θ_i on [0, 1] (the horizon is an end of the rule, not a jump inside it) by a uniform,
+    periodic rule in φ_i. Converged to 1e-13 at n = 400 for σ = 0.3 (against n = 3000), at n = 1200 for σ = 0.1."""
+    from scipy.special import eval_legendre
+
+    x, w = np.polynomial.legendre.leggauss(n)
+    ci, wc = 0.5 * (x + 1), 0.5 * w
+    phi = 2 * np.pi * (np.arange(n) + 0.5) / n
+    si = np.sqrt(1 - ci**2)
+    wi = np.stack([si[:, None] * np.cos(phi), si[:, None] * np.sin(phi), np.broadcast_to(ci[:, None], (n, n))], -1)
+    wo = np.array([np.sin(theta_o), 0, np.cos(theta_o)])
+    h = wi + wo
+    th = np.arccos(np.clip(h[..., 2] / np.linalg.norm(h, axis=-1), -1, 1))
+    f = np.exp(-((th / sigma) ** 2)) / (np.pi * sigma**2) / (4 * np.cos(theta_o))
+    u = wi @ np.array([-np.sin(theta_o), 0, np.cos(theta_o)])
+    dw = wc[:, None] * (2 * np.pi / n)
+    return np.array([np.sum(f * eval_legendre(l, u) * dw) for l in range(lmax + 1)])
+
+
+@pytest.mark.parametrize("sigma, theta_o, n", [(0.3, 0.0, 400), (0.3, 1.0, 400), (0.3, 1.4, 400), (0.6, 0.8, 400),
+                                               (0.1, 1.45, 1200)])
+def test_torrance_sparrow_spectrum_at_grazing_views_against_the_normal_frame_integral(sigma, theta_o, n):
+    """The horizon cuts the lobe about R at oblique views. A uniform azimuthal rule across that jump converged like
+    1/n: errors 1.9e-4 at θ_o = 1.0 and 1.4e-3 at 1.4 (σ = 0.3, default sizes). With the rule on the lit arc only,
+    split where the cut begins and a substitution for the arc's square-root ends, it is exact to rounding."""
+    got = np.asarray(jaxsh.torrance_sparrow_spectrum(sigma, 8, theta_o))
+    np.testing.assert_allclose(got, _ts_lobe_brute(sigma, 8, theta_o, n), rtol=0, atol=1e-11)
