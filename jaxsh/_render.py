@@ -40,7 +40,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Real
 from ._compile import jit
 from ._custom_types import ScalarLike, SequenceLike
 
-from ._checks import as_float_array, check_dirs, check_positive_int
+from ._checks import as_float_array, check_dirs, check_lmax_range, check_positive_int
 from ._grids import latlong_directions, latlong_weights
 from ._model import Lighting, TorranceSparrow, model_args
 from ._practical import (
@@ -56,6 +56,7 @@ from ._practical import (
 )
 from ._reference_pairs import PAIR_MODELS as _REFERENCE_BRDFS, specular_pairs
 from ._reflectance import tangent_frame
+from ._sh import REAL_SH_MAX_LMAX
 
 
 def _channels(x, name):
@@ -250,7 +251,7 @@ def render_practical(
     mu = None if brdf.mu is None else jnp.asarray(brdf.mu, dt)
     sigma, mu = _check_sigma_traced(jnp.asarray(brdf.sigma, dt), mu)
     npx = n.shape[0]
-    rows = _choose_table(method, lighting, brdf.sigma, npx)
+    rows = _choose_table(method, lighting, brdf.sigma, npx, dt)
     (n, v, kd, ks, *vis), mask = _pad_pixels(npx, (n, v, kd, ks, *vis), mask, (slow, sigma, mu, fdir, fen))
     terms = _terms(n, v, mask, slow, sigma, fdir, fen, *vis, bool(exact_fast_diffuse), rows)
     out = _combine(terms, mask, kd, ks, mu, sigma)
@@ -304,15 +305,28 @@ _TABLE_COST = 8
 _TABLE_MIN_PIXELS = 4096
 
 
-def _choose_table(method, lighting, sigma, npx: int) -> int | None:
-    """The rows of the slow-lighting table for `method` (None: the exact per-pixel sum)."""
+def _choose_table(method, lighting, sigma, npx: int, dt=jnp.float64) -> int | None:
+    """The rows of the slow-lighting table for `method` (None: the exact per-pixel sum).
+
+    The exact sum evaluates the harmonics per pixel, which below float64 give NaN near the poles from lmax ~186
+    (`REAL_SH_MAX_LMAX`): there `"auto"` takes the table whenever one meets the error bound, and otherwise, like
+    `"exact"`, it is a `ValueError`."""
     if method not in ("auto", "table", "exact"):
         raise ValueError(f"`method` must be 'auto', 'table' or 'exact', got {method!r}")
-    if method == "exact" or lighting.slow_sh is None:
+    if lighting.slow_sh is None:
         return None
     lmax = lighting.lmax
+    what = "`render_practical(method='exact')` (per-pixel SH band sums)"
+    if method == "exact":
+        check_lmax_range(lmax, dt, REAL_SH_MAX_LMAX, what)
+        return None
     s = _concrete(sigma)
     rows = _table_rows(lmax, None if s is None else float(s))
+    exact_ok = lmax <= REAL_SH_MAX_LMAX[1 if jnp.dtype(dt) == jnp.float64 else 0]
+    if method == "auto" and not exact_ok:
+        if rows is None:
+            check_lmax_range(lmax, dt, REAL_SH_MAX_LMAX, what + " (no table meets the error bound here)")
+        return rows
     if method == "table":
         if rows is None:
             what = f"sigma = {float(s):g}" if s is not None else "a traced sigma (the grid is then chosen from lmax alone)"
