@@ -7,6 +7,7 @@ import sys
 import time
 
 import jax
+import numpy as np
 
 
 def _block(r):
@@ -215,3 +216,30 @@ def apply_hugepages(args):
         sys.stdout.flush()
         sys.stderr.flush()
         os.execve(sys.executable, [sys.executable] + sys.argv, hugepages_env(os.environ))
+
+
+SEARCH_SAMPLES = 40000  # solvers.fit_brdf's default `search_pixels`
+
+
+def search_subset(n: int, m: int = SEARCH_SAMPLES):
+    """`m` indices evenly spaced over `n` samples, or None when `n <= m`: the samples `solvers.fit_brdf` runs its
+    grid and Nelder-Mead on (`solvers._brdf._search_samples`, every sample of positive weight here)."""
+    return None if n <= m else np.round(np.linspace(0, n - 1, m)).astype(np.int64)
+
+
+def scipy_real_sh(d, lmax: int):
+    """Real SH `(N, (lmax+1)^2)` of unit directions `d` `(N, 3)` in float64 from `scipy.special.sph_harm_y` (vectorized
+    over the points; docs/conventions.md: $Y_{l,\\pm m} = \\sqrt2(-1)^m(\\mathrm{Re}, \\mathrm{Im})\\,Y_l^m$): the
+    benchmarks' independent reference for the accuracy of both jaxsh and its peers."""
+    from scipy.special import sph_harm_y
+
+    d = np.asarray(d, np.float64)
+    theta, phi = np.arctan2(np.hypot(d[:, 0], d[:, 1]), d[:, 2]), np.arctan2(d[:, 1], d[:, 0])
+    out = np.empty((d.shape[0], (lmax + 1) ** 2))
+    for l in range(lmax + 1):
+        out[:, l * l + l] = sph_harm_y(l, 0, theta, phi).real
+        for m in range(1, l + 1):
+            y = sph_harm_y(l, m, theta, phi)
+            out[:, l * l + l + m] = np.sqrt(2.0) * (-1) ** m * y.real
+            out[:, l * l + l - m] = np.sqrt(2.0) * (-1) ** m * y.imag
+    return out

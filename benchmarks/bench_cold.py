@@ -105,7 +105,9 @@ def main():
         run([PY, "-c", SETUP, other, str(args.size), str(OTHER_RADIUS)], env=dict(os.environ, JAXSH_NO_CACHE="1"))
         print(f"captures: 3 views of {args.size}x{args.size}, sphere radius 1 and {OTHER_RADIUS}, rendered in "
               f"{time.perf_counter() - t0:.1f} s (not timed)")
-        base_env = {k: v for k, v in os.environ.items() if k not in ("JAXSH_CACHE_DIR", "JAXSH_NO_CACHE")}
+        # no cache setting of the caller's: a JAX_COMPILATION_CACHE_DIR would warm the "cold" runs
+        base_env = {k: v for k, v in os.environ.items()
+                    if k not in ("JAXSH_CACHE_DIR", "JAXSH_NO_CACHE", "JAX_COMPILATION_CACHE_DIR")}
         t_imp = [run([PY, "-c", "import jax, jaxsh, solvers"], env=base_env) for _ in range(args.repeats)]
         imp = statistics.median(t_imp)
         rows = [("import jax, jaxsh, solvers", imp, None, None, None)]

@@ -12,8 +12,8 @@ channels, metric M = diag(0.3, 0.3, 1, 1, 0.5) (eq. 11); random subsets of
 enables ``jax_enable_x64``; the library itself never does).
 
 Rows (wall-clock; "first" = trace + compile + run, "warm" = min of repeated
-runs, ``_common.time_jax``; multi-second peer calls are timed once after a
-warm-up when --quick is not given):
+runs, ``_common.time_jax``; the multi-second scipy peer calls are timed once,
+without a warm-up: NumPy/SciPy compile nothing):
 
 1. fit, all samples as centres (interpolation, eq. 10): ``solvers.fit_sharing``
    (LU of the saddle-point matrix, 3 right-hand sides; includes the input
