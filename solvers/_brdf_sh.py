@@ -118,7 +118,7 @@ def fit_brdf_sh(
     """
     if not isinstance(obs, Observations):
         raise ValueError(f"`obs` must be an Observations, got {type(obs).__name__}")
-    if obs.transfer is not None or obs.reflected_visibility is not None:
+    if obs.transfer is not None or obs.reflected_visibility is not None or obs.fast_visibility is not None:
         raise ValueError("fit_brdf_sh: the SH light-field model (eqs. 9, 10) has no shadowing; use a convex object")
     lmax = check_int(lmax, "lmax", lo=0)
     rcond = None if rcond is None else check_float(rcond, "rcond")

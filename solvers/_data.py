@@ -25,6 +25,7 @@ import jaxsh
 from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
 from ._results import Status as Status, status_name as status_name  # re-exported for older imports
+from ._results import check_int
 
 
 @jaxsh.jit
@@ -68,9 +69,14 @@ class Observations(eqx.Module):
 
     def subset(self, index) -> "Observations":
         """The samples at integer `index` (outside jit): one compiled gather for every field."""
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.nonzero(index)[0]
+        if index.size and (index.min() < -self.n_samples or index.max() >= self.n_samples):
+            raise ValueError(f"`index` must be in [-{self.n_samples}, {self.n_samples}), got {index.min()}..{index.max()}")
         fields = (self.normals, self.views, self.values, self.weights, self.transfer, self.fast_visibility,
                   self.reflected_visibility, self.texel, self.view_index, self.pixel_index)
-        return Observations(*_take(fields, jnp.asarray(np.asarray(index))), self.image_shapes, self.n_texels)
+        return Observations(*_take(fields, jnp.asarray(index)), self.image_shapes, self.n_texels)
 
     def to_images(self, values: Real[ArrayLike, "N C"], fill: float = 0.0) -> list[np.ndarray]:
         """Scatter per-sample `values` `(N, C)` back into one `(H, W, C)` image per view."""
@@ -144,6 +150,8 @@ def observations(
     **Returns:** `Observations` (float dtype of the G-buffers). Raises
     `ValueError` if no valid pixel remains, or on mismatched shapes.
     """
+    if saturation is not None and not (isinstance(saturation, (int, float, np.number)) and np.isfinite(saturation) and saturation > 0):
+        raise ValueError(f"`saturation` must be a positive finite number or None, got {saturation!r}")
     if invalid not in ("raise", "drop"):
         raise ValueError(f"`invalid` must be 'raise' or 'drop', got {invalid!r}")
     gbuffers = list(gbuffers)
@@ -173,11 +181,17 @@ def observations(
     tx = _per_view(texel, len(gbuffers), "texel", (), hw)
     fv = None
     if fast_visibility is not None:
+        if len(fast_visibility) != len(gbuffers):  # before reading the first entry's sources (an empty list: IndexError)
+            raise ValueError(f"`fast_visibility` must be a list of {len(gbuffers)} arrays (one per view), got "
+                             f"{len(fast_visibility)}")
         j = np.asarray(fast_visibility[0]).shape[-1]
         fv = _per_view(fast_visibility, len(gbuffers), "fast_visibility", (j,), hw)
+    if n_texels is not None:
+        n_texels = check_int(n_texels, "n_texels", lo=1)  # (-5 was accepted, 2.7 truncated to 2)
     if tx is not None:
         if n_texels is None:
-            n_texels = int(max(int(t.max()) for t in tx)) + 1
+            inside = [t[np.asarray(gb.mask).reshape(-1).astype(bool)] for t, gb in zip(tx, gbuffers)]
+            n_texels = int(max((int(t.max()) for t in inside if t.size), default=-1)) + 1
         for k, t in enumerate(tx):
             if not np.issubdtype(t.dtype, np.integer):
                 raise ValueError(f"`texel[{k}]` must be an integer array, got {t.dtype}")
@@ -192,7 +206,8 @@ def observations(
         if w_user is not None and not np.all(np.isfinite(w[sel]) & (w[sel] >= 0)):
             raise ValueError(f"`weights[{k}]` must be finite and >= 0 inside the mask (0 drops a pixel)")
         sel &= w > 0
-        vals = imgs[k]
+        with np.errstate(over="ignore"):  # cast first: a float64 value beyond float32's range becomes inf, caught below
+            vals = imgs[k].astype(dt)
         finite = np.all(np.isfinite(vals), axis=1)
         bad = sel & ~finite
         if bad.any():
@@ -211,7 +226,10 @@ def observations(
         idx = np.nonzero(sel)[0]
         cols["n"].append(np.asarray(gb.normal).reshape(-1, 3)[idx])
         cols["v"].append(np.asarray(gb.view).reshape(-1, 3)[idx])
-        cols["b"].append(vals[idx].astype(dt))
+        cols["b"].append(vals[idx])
+        for key, src in (("transfer", tr), ("fast_visibility", fv), ("reflected_visibility", rv)):
+            if src is not None and not np.all(np.isfinite(src[k][idx])):
+                raise ValueError(f"`{key}[{k}]` has non-finite values inside the mask")
         cols["w"].append(w[idx])
         cols["vi"].append(np.full(idx.shape, k, np.int32))
         cols["pi"].append(idx.astype(np.int32))
@@ -286,6 +304,13 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
     The visibility terms of a lighting part that `lighting` lacks are not used.
     """
     lights = view_lightings(obs, lighting)
+    for k, lit in enumerate([lighting] if lights is None else lights):
+        # grey (1-channel) lighting lights every channel; other counts must be the data's (2 on RGB data gave
+        # (N, 2) terms without a word)
+        if isinstance(lit, Lighting) and lit.n_channels not in (1, obs.n_channels):
+            where = "`lighting`" if lights is None else f"`lighting[{k}]`"
+            raise ValueError(f"{where} has {lit.n_channels} channels; `obs` has {obs.n_channels} (give 1 or "
+                             f"{obs.n_channels})")
     if lights is None:
         return _terms_one(obs, lighting, chunk)
     vi = np.asarray(obs.view_index)
@@ -358,8 +383,11 @@ def _texel_brdf(brdf: TorranceSparrow, texel, batch: tuple, mask) -> TorranceSpa
     if texel is None:
         for name, x in (("kd", kd), ("ks", ks)):
             if x.ndim >= 2:
+                # a map has the pixels' rank (a (T, C) per-texel result with T equal to the image width broadcast
+                # as a map of columns)
                 try:
-                    ok = jnp.broadcast_shapes(x.shape, tuple(batch) + (x.shape[-1],)) == tuple(batch) + (x.shape[-1],)
+                    ok = x.ndim == len(batch) + 1 and (
+                        jnp.broadcast_shapes(x.shape, tuple(batch) + (x.shape[-1],)) == tuple(batch) + (x.shape[-1],))
                 except ValueError:
                     ok = False
                 if not ok:

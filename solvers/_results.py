@@ -8,7 +8,8 @@ abstract `Solution`, so it carries the same fields:
 - the estimate (a named field such as `brdf` or `coeffs`; `estimate` returns it),
 - `status`: a `Status` item (one enumeration for all solvers),
 - `iterations`: int array, the steps the solver took (0 for direct solves),
-- `rms`: weighted RMS residual, `rel_rms`: `rms` over the weighted RMS of the
+- `rms`: weighted RMS residual $\\sqrt{\\sum w r^2 / n}$, $n$ the samples of positive weight (in the data's units
+  when the weights average 1), `rel_rms`: `rms` over the weighted RMS of the
   data (never NaN: 0 when both are 0, `inf` when only the data are 0),
 - `stats`: a dict of solver statistics (what each solver adds is in its docstring).
 

@@ -57,6 +57,8 @@ def sharing_tradeoff(
         raise ValueError(f"`n_images` must be a non-empty sequence of counts >= 1, got {n_images}")
     if not m_xy or min(m_xy) <= 0:
         raise ValueError(f"`m_xy` must be a non-empty sequence of positive scales, got {m_xy}")
+    if isinstance(n_out, bool) or not isinstance(n_out, (int, np.integer)) or n_out < 1:
+        raise ValueError(f"`n_out` must be an integer >= 1 (held-out images), got {n_out!r}")
     normal, mask, xy = _Z.sphere_geometry(n_px)
     l_out = _Z.cone_lights(n_out, max_angle, phase=1.3)
     i_out = _Z.render_images(brdf, normal, mask, l_out, xy=xy)

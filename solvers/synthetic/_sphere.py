@@ -83,6 +83,8 @@ def view_cameras(n_views: int = 3, size: int = 64, radius: float = 1.0, elevatio
     2.2 `radius`. `azimuths`, when given, must hold `n_views` values; `n_views` < 1 is a `ValueError`."""
     if isinstance(n_views, bool) or not isinstance(n_views, (int, np.integer)) or n_views < 1:
         raise ValueError(f"`n_views` must be an integer >= 1, got {n_views!r}")
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+        raise ValueError(f"`size` must be an integer >= 1 (pixels per side), got {size!r}")
     if azimuths is None:
         azimuths = np.linspace(-0.5, 1.0, n_views) if n_views > 1 else np.array([0.2])
     azimuths = np.asarray(azimuths, dtype).reshape(-1)
