@@ -149,7 +149,7 @@ def _microfacet_specular(tan2h, ch, ti, to, cd, ci, co, mu, sigma, dist):
 
 
 def _microfacet(wi, wo, n, kd, ks, mu, sigma, dist):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     h = _half(wi, wo)
     tan2h, ch = _tan2_theta_h(h, n)
     val = kd + ks * _microfacet_specular(tan2h, ch, _tan2(wi, n), _tan2(wo, n), _dot(wi, h), ci, co, mu, sigma, dist)

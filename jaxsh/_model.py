@@ -12,8 +12,9 @@ a non-finite entry in any field, $\\sigma \\le 0$, $\\mu < 1$, a negative
 $K_d$, $K_s$, source energy or disk radiance, a zero-length direction or a
 disk radius outside $(0, \\pi]$ raise `ValueError` naming the field and the
 offending value. Under a transformation the values are traced and these
-checks are skipped (the public renderers and BRDF functions check their
-parameters again with `equinox.error_if`). Solver *results* (standard
+checks are skipped (the public renderers and BRDF functions check σ and μ
+again with `equinox.error_if`; a traced negative $K_d$ or $K_s$ is not
+checked there: linear fits may produce one, and it renders as given). Solver *results* (standard
 errors, the estimate of a failed solve) may hold `inf`/NaN: they are built
 with `TorranceSparrow.unchecked(...)` / `Lighting.unchecked(...)`, the same
 constructor without the value checks.

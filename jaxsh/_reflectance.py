@@ -21,14 +21,18 @@ $\\alpha \\le 0$ (Ward), $\\sigma < 0$ (Oren–Nayar), a Phong exponent
 $s \\le -1$, a relative index $\\mu < 1$ in a BRDF or $\\mu \\le 0$ in
 `fresnel_*` — is an error, never a finite number: `ValueError` naming the
 parameter when its value is concrete, `equinox.error_if` when it is traced
-(under `jit`, `vmap`, `grad`). NaN inputs (directions or parameters) are
-not checked: they propagate to NaN outputs, as in `jax.numpy`.
+(under `jit`, `vmap`, `grad`). NaN parameters are not checked: they
+propagate to NaN outputs, as in `jax.numpy` (a NaN $\\mu$ gave the value
+without Fresnel, its test read as total internal reflection). A NaN
+*direction* fails the horizon test like one below it: the value is 0.
 
 **Below the horizon.** Every model returns exactly 0 when
 $\\omega_i\\cdot n \\le 0$ or $\\omega_o\\cdot n \\le 0$. The model is then
-evaluated at a harmless substitute configuration ($\\omega_i = \\omega_o = n$)
-and discarded (the "double `where`"), so gradients with respect to
-directions and parameters are finite — and zero — there too.
+evaluated at a harmless substitute configuration ($\\omega_i = \\omega_o = n =
++z$: $n$ too, since a G-buffer miss has a zero normal) and discarded (the
+"double `where`"), so gradients with respect to directions and parameters
+are finite — and zero — there too (with $n$ the normal's substitute was $n$
+itself, and a zero normal gave NaN gradients).
 
 **Singular configurations** inside the domain (the half vector along the
 normal, $\\theta_h = 0$; light and view directions equal, $\\theta_d = 0$; a
@@ -671,7 +675,7 @@ def _fresnel_parts(c, mu):
     g = _safe_sqrt(g2)
     d_s = c + g
     d_p = mu2 * c + g
-    ok = (g2 > 0.0) & (d_s > 0.0) & (d_p > 0.0)
+    ok = ~((g2 <= 0.0) | (d_s <= 0.0) | (d_p <= 0.0))  # NaN (c or mu) stays on the formula branch: propagates
     d_s = jnp.where(ok, d_s, 1.0)
     d_p = jnp.where(ok, d_p, 1.0)
     k = (mu + 1.0) ** 2
@@ -749,9 +753,11 @@ def _above(wi, wo, n):
     co = _dot(wo, n)
     valid = (ci > 0.0) & (co > 0.0)
     vm = valid[..., None]
-    wi_s = jnp.where(vm, wi, n)
-    wo_s = jnp.where(vm, wo, n)
-    return valid, wi_s, wo_s, _dot(wi_s, n), _dot(wo_s, n)
+    ez = jnp.zeros_like(n).at[..., 2].set(1.0)  # a unit substitute: n itself may be 0 (a G-buffer miss)
+    n_s = jnp.where(vm, n, ez)
+    wi_s = jnp.where(vm, wi, ez)
+    wo_s = jnp.where(vm, wo, ez)
+    return valid, wi_s, wo_s, n_s, _dot(wi_s, n_s), _dot(wo_s, n_s)
 
 
 def _half(wi, wo):
@@ -834,7 +840,7 @@ def phong(
 
 @jit
 def _phong(wi, wo, n, s, divide):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     rl = 2.0 * ci * co - _dot(wi, wo)
     pos = rl > 0.0
     lobe = jnp.where(pos, jnp.where(pos, rl, 1.0) ** s, 0.0)
@@ -889,7 +895,7 @@ def _ts_specular(theta_h_sq, ci, co, f, sigma):
 
 @jit
 def _torrance_sparrow(wi, wo, n, kd, ks, mu, sigma):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     theta_h_sq = _theta_h_sq(*_half_angle_parts(wi + wo, n))
     f = 1.0 if mu is None else _fresnel_normalized(co, mu)
     val = kd + ks * _ts_specular(theta_h_sq, ci, co, f, sigma)
@@ -936,7 +942,7 @@ def cook_torrance(
 
 @jit
 def _cook_torrance(wi, wo, n, kd, ks, m, mu):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     h = _half(wi, wo)
     tan2, ch = _tan2_theta_h(h, n)
     m2 = m * m
@@ -976,7 +982,7 @@ def ward_isotropic(
 
 @jit
 def _ward(wi, wo, n, rd, rs, al):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     tan2, _ = _tan2_theta_h(_half(wi, wo), n)
     a2 = al * al
     val = rd / _PI + rs * jnp.exp(-tan2 / a2) / (4.0 * _PI * a2 * jnp.sqrt(ci * co))
@@ -1016,7 +1022,7 @@ def oren_nayar(
 
 @jit
 def _oren_nayar(wi, wo, n, a, sg):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     s2 = sg * sg
     big_a = 1.0 - 0.5 * s2 / (s2 + 0.33)
     big_b = 0.45 * s2 / (s2 + 0.09)
@@ -1054,7 +1060,7 @@ def lafortune(
 
 @jit
 def _lafortune(wi, wo, n, kd, lobes):
-    valid, wi, wo, ci, co = _above(wi, wo, n)
+    valid, wi, wo, n, ci, co = _above(wi, wo, n)
     zz = ci * co
     xy = _dot(wi, wo) - zz
     base = lobes[..., 0] * xy[..., None] + lobes[..., 1] * zz[..., None]

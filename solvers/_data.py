@@ -135,7 +135,8 @@ def observations(
     **Arguments:**
 
     - `gbuffers`: one `jaxsh.GBuffer` per view; `images`: matching
-      `(H, W, C)` (or `(H, W)`) linear radiance images.
+      `(H, W, C)` (or `(H, W)`) linear radiance images, float (integer code
+      values are a `ValueError`: decode them with `jaxsh.io.read_image`).
     - `masks`, `weights`: optional per-view `(H, W)` arrays. A mask keeps the
       pixels where it is nonzero (bool, integer) or above 0.5 (float: a
       coverage or a soft mask, as `jaxsh.io.read_mask` thresholds files; 0.1
@@ -165,6 +166,11 @@ def observations(
     chans = None
     for k, img in enumerate(images):
         img = np.asarray(img)
+        if not np.issubdtype(img.dtype, np.floating):
+            # 8/16-bit code values are not radiance: their encoding must be declared (`jaxsh.io.read_image`),
+            # never guessed; a complex image lost its imaginary part with only NumPy's warning
+            raise ValueError(f"`images[{k}]` must be a float array of linear radiance, got {img.dtype} (decode "
+                             "integer images with `jaxsh.io.read_image(path, encoding=...)`)")
         if img.ndim == 2:
             img = img[..., None]
         if img.ndim != 3 or img.shape[:2] != hw[k]:

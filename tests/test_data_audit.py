@@ -95,3 +95,11 @@ def test_predict_does_not_take_a_per_texel_result_for_a_map_of_columns(gb32):
     brdf = solvers.TorranceSparrow(np.full((w, 3), 0.5), np.full(3, 0.2), 1.5, 0.2)
     with pytest.raises(ValueError, match="texel="):
         solvers.predict(brdf, solvers.Lighting(np.ones((9, 3))), gb32.normal, gb32.view, mask=gb32.mask)
+
+
+def test_integer_and_complex_images_are_refused(gb32):
+    """uint8 code values were read as linear radiance (200 for a pixel of 200/255 in sRGB) and a complex image lost
+    its imaginary part with only NumPy's warning: an encoding is declared, never guessed."""
+    for img in (np.full((8, 8, 3), 200, np.uint8), np.ones((8, 8, 3), np.complex128)):
+        with pytest.raises(ValueError, match=r"`images\[0\]` must be a float array"):
+            solvers.observations([gb32], [img])
