@@ -133,7 +133,8 @@ class Lighting(eqx.Module):
       and a uniform radiance (energy $2\\pi(1-\\cos r)$·radiance, as
       `jaxsh.disk_light_sh` / `jaxsh.split_disk_sources` represent them).
 
-    `render_reference` integrates the fast and disk sources exactly;
+    `render_reference` takes the fast sources exactly and the disks by
+    quadrature (its `disk_nodes`);
     `render_practical` takes the slow and fast parts and asks for the
     slow/fast split of the disks first (`split_disks`).
 

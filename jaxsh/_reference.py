@@ -29,7 +29,9 @@ def reflect_quadrature(
     The reflection equation (R&H 2001 eq. 2) over the hemisphere about each
     normal: Gauss-Legendre in $\\cos\\theta_i$ on [0, 1] (`n_theta` nodes) ×
     `n_phi` uniform azimuths. Converges spectrally for smooth integrands;
-    sharp lobes need nodes finer than the lobe (`n_theta` ≳ 10/σ).
+    sharp lobes need nodes finer than the lobe in both angles (`n_theta` ≳ 10/σ
+    and `n_phi` likewise: a grazing lobe at σ 0.1 came out 35 % low with
+    `n_theta=100` and the default `n_phi=128`, and converged at (400, 2048)).
 
     **Arguments:**
 

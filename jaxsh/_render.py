@@ -364,12 +364,15 @@ def _combine(terms, mask, kd, ks, mu, sigma):
 def _disk_quadrature(direction, radius, n_theta, n_phi, dt):
     """Directions and solid-angle weights covering a spherical cap (Gauss-Legendre × uniform)."""
     x, w = np.polynomial.legendre.leggauss(n_theta)
-    umin = jnp.cos(radius)
-    u = 0.5 * (1 - umin) * jnp.asarray(x, dt) + 0.5 * (1 + umin)
-    wu = 0.5 * (1 - umin) * jnp.asarray(w, dt)
+    # 1 - cos r and 1 - u without cancellation: float32 lost the solid angle of small disks (-4.6 % at r = 1e-3,
+    # +0.14 % at the sun's 0.005; `jaxsh.disk_energy` already took 4 pi sin^2(r/2))
+    h = 2.0 * jnp.sin(0.5 * radius) ** 2  # 1 - cos r
+    q = 0.5 * h * jnp.asarray(1.0 - x, dt)  # 1 - u at each node
+    u = 1.0 - q
+    wu = 0.5 * h * jnp.asarray(w, dt)
     phi = jnp.asarray(2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi, dt)
     t, b = tangent_frame(direction)
-    s = jnp.sqrt(jnp.clip(1 - u * u, 0.0))
+    s = jnp.sqrt(jnp.clip(q * (2.0 - q), 0.0))  # sin of the node's angle from the centre
     dirs = (
         u[:, None, None] * direction[None, None, :]
         + (s[:, None] * jnp.cos(phi)[None, :])[..., None] * t[None, None, :]
@@ -436,7 +439,13 @@ def render_reference(
     with $\\rho$ = `torrance_sparrow` (R&H sec. 5.2), integrated exactly for
     delta sources, by Gauss-Legendre × uniform-azimuth quadrature over each
     disk source (`disk_nodes` = (n_θ, n_φ) per disk; resolve the lobe: the
-    nodes should be finer than σ), and texel by texel over a lat-long
+    nodes should be finer than σ; where a pixel's lobe is cut by its horizon —
+    grazing views, near a silhouette — the integrand jumps inside the disk and
+    the error falls only like the node spacing: measured against a brute-force
+    integral, σ 0.15 and a 1.2 rad disk at the default nodes, +105 % at
+    $\\cos\\theta_o$ = 0.021 and +3 % at 0.0003, against 1e-4 inside the
+    silhouette; on a 64² sphere at σ 0.1, 30 of 2,660 pixels off by more than
+    1 %, the worst 9 %: raise `disk_nodes` where those pixels matter), and texel by texel over a lat-long
     environment map (exact Fejér weights; accurate only where the lobe is
     wider than a texel). Memory-bounded (pixels in chunks), no SH
     anywhere: the ground truth the practical model is checked against. The
@@ -460,7 +469,9 @@ def render_reference(
     - For concave objects pass the occluding `mesh` (trimesh) and the surface
       `points` `(..., 3)`: every quadrature direction of every pixel is then
       ray-cast (`directional_visibility`; NumPy/embree, N × M rays) and the
-      integrand multiplied by its visibility (R&H sec. 6.4 shadowing, exactly).
+      integrand multiplied by its visibility (R&H sec. 6.4 shadowing; each
+      direction's visibility is exact, but a shadow edge across a disk makes the
+      integrand jump: 0.5–1.3 % at the default `disk_nodes`, ≤ 2e-4 at (192, 384)).
     - `chunk` (static): pixels per step of the loop over pixels; each step holds a few
       `(chunk, M)` arrays for the `M` directions (quadrature nodes, texels, sources). Default:
       $\\max(16, \\min(4096, 2^{19}/M))$ (about 4 MB per array; docs/performance.md, "Fourteenth round").
