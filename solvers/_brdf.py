@@ -525,9 +525,10 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         s2 = rss / jnp.maximum(nobs - n_par, 1.0)
         if textured == "kd_ks":
             ds, ss = seg(w[:, None] * D * S), seg(w[:, None] * S * S)
-            v_kd, v_ks, okd = inverse_sym2_diag(dd, ds, ss)
-            se_kd = jnp.where(okd, jnp.sqrt(s2 * v_kd), jnp.inf)
-            se_ks = jnp.where(okd, jnp.sqrt(s2 * v_ks), jnp.inf)
+            v_kd, v_ks, _ = inverse_sym2_diag(dd, ds, ss)  # inf where undetermined (a texel without specular
+            # sums keeps its K_d's error)
+            se_kd = jnp.sqrt(s2 * v_kd)
+            se_ks = jnp.sqrt(s2 * v_ks)
             und_ks = _undetermined_texel_ks(kd, se_ks, counts > 0)
         else:
             # one K_s per channel: its variance is s2 over the Schur complement of the K_d block, and each K_d's

@@ -181,7 +181,8 @@ def rms_pair(rss, data_ss, count) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """`(rms, rel_rms)` from a residual sum of squares, the data's sum of squares and the sample count.
 
     `rms = sqrt(rss / count)` (0 for `count == 0`); `rel_rms = rms / data_rms`
-    with `0/0 = 0` and `x/0 = inf`: never NaN unless `rss` or `data_ss` is NaN (then NaN, not 0).
+    with `0/0 = 0` and `x/0 = inf`: never NaN unless `rss` or `data_ss` is NaN (then NaN, not 0) or both are
+    infinite (inf/inf).
     """
     rss = jnp.asarray(rss)
     data_ss = jnp.asarray(data_ss, rss.dtype)
@@ -232,6 +233,8 @@ def check_bool(value, name: str, none: bool = False) -> bool | None:
 def check_float(value, name: str, lo: float = 0.0, strict: bool = False) -> float:
     """A finite float option `>= lo` (`> lo` with `strict`), else a `ValueError` naming `name`."""
     try:
+        if isinstance(value, (bool, np.bool_, str, bytes)):  # float(True) is 1.0, float("0.5") is 0.5: not numbers given
+            raise TypeError
         v = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be a finite number {'>' if strict else '>='} {lo:g}, got {value!r}") from None
