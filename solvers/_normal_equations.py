@@ -113,8 +113,9 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
     """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding).
 
     With `rows`, also return the design rows of all pixels, diffuse and specular stacked, pixels last:
-    `(9 + n_coeffs, N + pad)` (`eq25_rows` with `coeffs_first`; the `pad = -N % chunk` last columns are 0: a
-    slice to N would copy the whole array again), from the same pass (`factorize`'s refinement on all pixels
+    `(9 + n_coeffs, N + pad)` (`eq25_rows` with `coeffs_first`; the `pad = -N % chunk` last columns are the rows of
+    the padding's +z pixels, not 0: their weight 0 keeps them out of every sum, and callers drop them after a
+    product; a slice to N would copy the whole array again), from the same pass (`factorize`'s refinement on all pixels
     reads them). Returns `Gram` or `(Gram, rows)`."""
     npx = n.shape[0]
     pad = (-npx) % chunk
