@@ -110,6 +110,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 
 import jaxsh
 
+from ._brdf import _AT_BOUND_TOL
 from ._data import Lighting, Observations, TorranceSparrow
 from ._host_random import host_rng
 from ._factorize_dual import _check_region_arg, _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
@@ -1225,7 +1226,8 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
 def _at_bound(t_mu, sigma) -> dict:
     """`{"mu": bool, "sigma": bool}`: the final $t = \\log(\\mu - 1)$ (a host float, None without Fresnel) at an end of
     `_MU_T_RANGE` (the grids hold the ends exactly), and $\\log\\sigma$ (None without `find_sigma`) within
-    `_AT_BOUND_TOL` of an end of `_SIGMA_RANGE` (the σ grids approach an end by their spacing only)."""
+    `_AT_BOUND_TOL` (`fit_brdf`'s, in log units) of an end of `_SIGMA_RANGE` (the σ grids approach an end by
+    their spacing only)."""
     mu_b = t_mu is not None and not _MU_T_RANGE[0] + 1e-9 < float(t_mu) < _MU_T_RANGE[1] - 1e-9
     sigma_b = False
     if sigma is not None:
@@ -1233,8 +1235,6 @@ def _at_bound(t_mu, sigma) -> dict:
         sigma_b = bool(np.isfinite(ls)) and not np.log(_SIGMA_RANGE[0]) + _AT_BOUND_TOL < ls < np.log(_SIGMA_RANGE[1]) - _AT_BOUND_TOL
     return {"mu": bool(mu_b), "sigma": bool(sigma_b)}
 
-
-_AT_BOUND_TOL = 1e-3  # in log sigma: 0.1 % from an end of `_SIGMA_RANGE` counts as at the end
 
 
 def _parabola(t, vals, k):
