@@ -18,9 +18,11 @@ rather than TF32; and `by_platform` picks a kernel's form for the platform a pro
 
 `jit(..., optimize=False)` adds XLA's backend optimization level 0 (XLA's default is 3) for a program
 that runs once per call and briefly, where the compilation is most of what the user waits for:
-`solvers.factorize`'s `_golden_batch`, `_lighting_and_source` and `_refine_final` compile in 1.9 s less
-in all (3×256², XLA's own log: 5.4 s → 3.5 s over the call's programs) and run 60-100 ms slower per
-call in all (docs/performance.md, "Eleventh round").
+`solvers.factorize`'s `_lighting_and_source` and `_refine_final` (and `_golden_batch` until session 29)
+compiled in 1.9 s less in all (3×256², XLA's own log: 5.4 s → 3.5 s over the call's programs) and ran
+60-100 ms slower per call in all (docs/performance.md, "Eleventh round"). `_golden_batch` runs once per
+round of the μ search, four or more times a call: at level 0 it took 12 ms a call against 2 ms, so it is
+optimized again ("Twenty-second round").
 """
 
 from __future__ import annotations

@@ -35,16 +35,18 @@ searches (the channels decouple once $\\mu$ is fixed):
 
 At the chosen $\\mu$ the search is repeated on all pixels and the lighting
 is solved as in `inverse_lighting` (the filtered lighting of eq. 25). With the
-table, that final solve runs the rounds' own compiled programs (`_mu_blocks`,
-`_golden_batch`: the blocks of all pixels enter as a batch like a round's) and
-the pass over all pixels also makes their eq.-25 rows for the refinement
-(`_all_pixel_blocks`); the lighting and eq. 26 are one program
+table, that final solve runs the rounds' own compiled program (`_golden_batch`:
+the blocks of all pixels enter as a batch like a round's), and the one pass over
+all pixels (`_all_pixel_blocks`) also makes their eq.-25 rows for the refinement
+and, with the subset's pixels taken first (`_subset_first`), the subset's blocks
+for the refinement's search; the lighting and eq. 26 are one program
 (`_lighting_and_source`). Fewer, shared programs are what a first call waits
-for (XLA compilation; docs/performance.md). The three programs that run for
-milliseconds but took 0.6-1.0 s each to compile (`_golden_batch`,
-`_lighting_and_source`, `_refine_final`) are compiled without XLA's backend
-optimizations (`jaxsh.jit(optimize=False)`): 1.9 s less compilation, 60-100 ms
-more run time per call (docs/performance.md, "Eleventh round").
+for (XLA compilation; docs/performance.md). The two programs that run once and
+for milliseconds but took 0.6-1.0 s each to compile (`_lighting_and_source`,
+`_refine_final`) are compiled without XLA's backend optimizations
+(`jaxsh.jit(optimize=False)`; docs/performance.md, "Eleventh round";
+`_golden_batch`, which runs once per round, no longer: 12 ms a call at level 0,
+2 ms optimized, "Twenty-second round").
 
 **$\\mu$ on the joint model (`refine_mu`, the default; not in the paper).** Stage 1's objective models the
 lighting as $l \\le l^*$ SH only. A bright compact source (a sun) is far from that model, and $\\mu$ absorbs
@@ -629,8 +631,8 @@ def factorize(
       `default_rng(key data).choice(n, search_pixels, replace=False)` over the
       samples of positive weight, drawn on the host. Memory:
       with `fresnel`, the μ search holds the subset's harmonics to degree
-      2·`lmax` (8·(2·`lmax`+1)² bytes per sample: 200 MB for 40,000 samples
-      at `lmax` 12); where that would exceed 512 MB it forms each
+      2·`lmax` and, contiguous, to `lmax` (8·((2·`lmax`+1)² + (`lmax`+1)²) bytes per sample: 254 MB for
+      40,000 samples at `lmax` 12); where that would exceed 512 MB it forms each
       candidate's blocks by direct sums instead (same result, slower).
     - `max_steps`, `rtol`, `atol`: the refinement's search in
       $t = \\log\\sigma$: at most `max_steps` grids, until their spacing is
@@ -737,7 +739,7 @@ def factorize(
     curv_rss = None
     tab = None
     if fresnel:
-        if lighting_method == "sh" and sub.n_samples * (2 * lmax + 1) ** 2 * 8 <= _TABLE_BYTES:
+        if lighting_method == "sh" and sub.n_samples * ((2 * lmax + 1) ** 2 + (lmax + 1) ** 2) * 8 <= _TABLE_BYTES:
             tab = _mirror_table_jit(sub, lmax)
         t = np.linspace(np.log(0.05), np.log(2.5), 9)
         for rnd in range(3):
@@ -771,6 +773,7 @@ def factorize(
         mu, its1, best = None, 0, None
     dual = None
     rows_obs = None  # the eq.-25 rows of all pixels at the stage-1 mu (direct path with a subset), for the refinement
+    perm = None  # the order of those rows' pixels (`_subset_first`), or None: as in `obs`
     blocks = (None, None)  # the eq.-25 blocks at the stage-1 mu on all pixels and on the subset, for the refinement
     if lighting_method == "dual":
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
@@ -787,8 +790,11 @@ def factorize(
         if sub is obs or joint_mu:
             bl_obs = bl_sub = _mu_blocks(tab, mu9, lmax, rcond)
         else:
-            bl_obs, rows_obs = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, refine and find_sigma)
-            bl_sub = _mu_blocks(tab, mu9, lmax, rcond) if refine and find_sigma else None
+            if refine and find_sigma:  # the subset's blocks from the same pass (`_subset_first`)
+                perm = _subset_first(obs.n_samples, idx, chunk)
+                bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[2])
+            else:
+                bl_obs, _, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, False)
         _, ks, golden_steps = _golden_batch(bl_obs)
         blocks = (bl_obs, bl_sub)
         region_c = None if region is None else check_region(region, 128, dt)
@@ -850,8 +856,9 @@ def factorize(
         if sub is obs:
             blocks = (_mu_blocks(tab, mu9, lmax, rcond),) * 2
         else:
-            bl_obs, rows_obs = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True)
-            blocks = (bl_obs, _mu_blocks(tab, mu9, lmax, rcond))
+            perm = _subset_first(obs.n_samples, idx, chunk)
+            bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[2])
+            blocks = (bl_obs, bl_sub)
         _, ks, golden_steps = _golden_batch(blocks[0])
         res1, src = _lighting_and_source(blocks[0], ks, lmax, rcond, region_c, True)
         filtered = res1.coeffs
@@ -877,7 +884,7 @@ def factorize(
         stats["num_steps_golden"], stats["n_obs"] = golden_steps, res1.stats["n_obs"]
         stats["num_steps_bisection"] = src.num_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
-                  rows_obs)
+                  rows_obs, perm)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted = out
     kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2, res1.status)
     brdf = TorranceSparrow.unchecked(kd, ks, mu, sigma)
@@ -954,7 +961,7 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
 
 
 # `factorize` searches mu on a `MirrorTable` of the subset when it takes at most this many bytes (40,000 samples at
-# l* = 12: 200 MB), otherwise by `accumulate_gram` per candidate (`_mu_candidates`)
+# l* = 12: 254 MB), otherwise by `accumulate_gram` per candidate (`_mu_candidates`)
 _TABLE_BYTES = 512 * 2**20
 
 
@@ -971,7 +978,7 @@ def _mu_blocks(tab: MirrorTable, mus, lmax, rcond) -> _Blocks:
     return _Blocks(g, *_pinv_each(g.ss[:, 9:, 9:], rcond))
 
 
-@jaxsh.jit(optimize=False)
+@jaxsh.jit
 def _golden_batch(bl: _Blocks):
     """`_golden_ks` (tolerances 1e-11) for each of a batch of `_Blocks` (leading K): the profiled relative RSS
     of each `(K,)`, and K_s `(C,)` and the golden steps `(C,)` of the first. One program serves the mu rounds
@@ -982,15 +989,60 @@ def _golden_batch(bl: _Blocks):
 
 
 @jaxsh.jit
-def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows: bool):
+def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows: bool, order=None,
+                      split: int | None = None):
     """The eq.-25 blocks at `mu` on all pixels (`accumulate_gram`, one pass), with pinv, repeated to the batch
     of 9 that `_golden_batch` was compiled for (`_mu_blocks`' layout), and with `rows` the pixels' eq.-25 rows
-    `(9 + n, N + pad)` from the same pass (else None)."""
-    g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility,
-                        mu, None, lmax, chunk, rows)
-    g, rows_obs = g if rows else (g, None)
-    bl = _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
-    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl), rows_obs
+    `(9 + n, N + pad)` from the same pass (else None). With `order` and `split` (`_subset_first`: the search subset
+    first, padded to `split` chunks), the pixels are taken in that order (so are the rows' columns), and the
+    subset's blocks come from the same pass (else None), batched alike: the refinement's search needs them at the
+    final mu, and a `_mu_blocks` call for that one mu took 61 ms (3 × 256², 40,000 samples).
+    Returns `(blocks, rows or None, subset blocks or None)`."""
+    o = obs if order is None else _permuted(obs, order)
+    out = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility,
+                          mu, None, lmax, chunk, rows, split)
+    out = out if isinstance(out, tuple) else (out,)
+    g, rows_obs, g_sub = out[0], (out[1] if rows else None), (out[-1] if split is not None else None)
+
+    def batched(g):
+        bl = _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
+        return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl)
+
+    return batched(g), rows_obs, (None if g_sub is None else batched(g_sub))
+
+
+def _subset_first(n: int, idx: np.ndarray, chunk: int):
+    """The pixel order of `_all_pixel_blocks` that puts the search subset first: `(order, pos, split)`.
+
+    `order` `(split · chunk + N - len(idx),)`: the subset's indices `idx`, then the index `n` (a weight-0 pixel,
+    `_permuted`) up to `split` whole chunks, then the other pixels in their order; `pos` `(n,)`: where each pixel
+    went (`order[pos] = arange(n)`), both as device arrays; `split` the subset's chunks."""
+    split = -(-len(idx) // chunk)
+    others = np.ones(n, bool)
+    others[idx] = False
+    rest = np.flatnonzero(others)
+    order = np.concatenate([idx, np.full(split * chunk - len(idx), n), rest]).astype(np.int32)
+    real = order < n
+    pos = np.empty(n, np.int32)
+    pos[order[real]] = np.flatnonzero(real)
+    return jax.device_put(order), jax.device_put(pos), split
+
+
+def _permuted(o: Observations, order) -> Observations:
+    """`o`'s samples in the order `order` (`_subset_first`); the index `o.n_samples` is a sample of weight 0 with
+    +z normal and view (valid unit vectors) and zero data, visibility and transfer."""
+    up = np.zeros(3)
+    up[2] = 1.0
+
+    def take(a, fill=0.0):
+        if a is None:
+            return None
+        one = jnp.broadcast_to(jnp.asarray(fill, a.dtype), (1,) + a.shape[1:])
+        return jnp.concatenate([a, one])[order]
+
+    return Observations(take(o.normals, up), take(o.views, up), take(o.values), take(o.weights), take(o.transfer),
+                        take(o.fast_visibility), take(o.reflected_visibility), take(o.texel, 0), take(o.view_index, 0),
+                        take(o.pixel_index, 0), o.image_shapes, o.n_texels)
 
 
 @jaxsh.jit(optimize=False)
@@ -1035,16 +1087,47 @@ class _Joint(eqx.Module):
     """Everything the refinement objective needs for one pixel set (mu fixed)."""
 
     bl: _Blocks
-    # (9 + n, N): the diffuse and the (unfiltered) specular rows of eq. 25, stacked, pixels last: `rows @ x` is a
-    # plain matrix-vector product (`rows.T @ x` on an (N, 9 + n) array made XLA copy a transpose per evaluation
-    # inside the former Nelder-Mead loop, 57 MB at 40,000 samples: 10.5 ms per step against 3.7 ms for its two
-    # evaluations)
-    rows: Array
+    # The diffuse rows `rows_d` (9, N) and the (unfiltered) specular rows `rows_s` (n, N) of eq. 25, pixels last:
+    # `rows_s @ x` is a plain matrix-vector product (`rows.T @ x` on an (N, 9 + n) array made XLA copy a transpose
+    # per evaluation inside the former Nelder-Mead loop, 57 MB at 40,000 samples: 10.5 ms per step against 3.7 ms
+    # for its two evaluations). `f` (N,) or None: a factor of every specular row's pixel, applied to the vectors
+    # they multiply (`_rows_dot`, `_coef_rows`): on the search subset the specular rows are the `MirrorTable`'s
+    # harmonics `ys`, shared by every mu, and `f` is mu's Fresnel factor times the visibility (a copy of the rows
+    # per mu was 57 MB written, 19-25 ms, eleven times in a call).
+    rows_d: Array
+    rows_s: Array
+    f: Array | None
     w: Array
     b: Array
     normals: Array
     views: Array
     fvis: Array | None  # (N,) visibility of the found source (a column of `fast_visibility`), or None
+
+    @property
+    def rows(self) -> Array:
+        """The rows of eq. 25 `(9 + n, N)`, stacked and with `f` applied (a new array: for checks, not for the search)."""
+        return jnp.concatenate([self.rows_d, self.rows_s if self.f is None else self.rows_s * self.f[None, :]], 0)
+
+
+def _rows_dot(jt: _Joint, x):
+    """`jt.rows @ x` for `x` `(N,)`, without forming the rows: `(9 + n,)`."""
+    return jnp.concatenate([jt.rows_d @ x, jt.rows_s @ (x if jt.f is None else jt.f * x)])
+
+
+def _rows_dot_many(jt: _Joint, x):
+    """`jt.rows @ x[t]` for each row of `x` `(T, N)`: `(T, 9 + n)`, as two `dot_general`s of the rows with `x`, the
+    pixels contracted, rows first. XLA:CPU runs the product with `x` first (what `vmap` of a matrix-vector product,
+    or `x @ rows.T`, or `rows @ x.T` became here) 2-3× slower: 16 vectors against 178 × 40,000 rows, 11.7-13.3 ms
+    against 4.8-5.4 ms (measured)."""
+    xs = x if jt.f is None else x * jt.f[None, :]
+    dims = (((1,), (1,)), ((), ()))
+    return jnp.concatenate([jax.lax.dot_general(jt.rows_d, x, dims), jax.lax.dot_general(jt.rows_s, xs, dims)], 0).T
+
+
+def _coef_rows(jt: _Joint, coef):
+    """`coef @ jt.rows` for `coef` `(C, 9 + n)`, without forming the rows: `(C, N)`."""
+    spec = coef[:, 9:] @ jt.rows_s
+    return coef[:, :9] @ jt.rows_d + (spec if jt.f is None else spec * jt.f[None, :])
 
 
 def _joint(o: Observations, bl, mu, lmax, chunk, rcond, column) -> _Joint:
@@ -1052,7 +1135,7 @@ def _joint(o: Observations, bl, mu, lmax, chunk, rcond, column) -> _Joint:
     bl = _blocks(o, mu, lmax, chunk, rcond) if bl is None else _first(bl)
     d, s = eq25_rows(o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax, coeffs_first=True)
     fvis = None if column is None else o.fast_visibility[:, column]
-    return _Joint(bl, jnp.concatenate([d, s], 0), o.weights, o.values, o.normals, o.views, fvis)
+    return _Joint(bl, d, s, None, o.weights, o.values, o.normals, o.views, fvis)
 
 
 class _SourceParts(eqx.Module):
@@ -1099,13 +1182,13 @@ def _source_parts(jt: _Joint, mu, d) -> _SourceParts:
     amp = jnp.where(lit, f * v_d / (4 * cos_o), 0.0)
     th2 = jaxsh.half_angle(d[None, :], v, n) ** 2
     wfd = jt.w * fd
-    rows_fd = jt.rows @ wfd
+    rows_fd = _rows_dot(jt, wfd)
     g, h = jt.bl.g, jt.bl.h22
     return _SourceParts(fd, amp, th2, rows_fd, jnp.sum(wfd * fd), wfd @ jt.b, h @ g.ds[:, 9:].T, h @ g.ss[:9, 9:].T,
                         h @ g.sb[9:], h @ rows_fd[18:])
 
 
-def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
+def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax, rows_fs=None):
     """RSS per channel of [slow SH filtered by sigma + delta source at d] for kd = 1 - ks (the source's rows
     from the precomputed `sp`: one pass over the rows per evaluation). Returns `rss (C,)`, `x1 (C, 10)` (the
     $l \\le 2$ lighting and the source's energy), `x2 (C, n - 9)` (the $l > 2$ lighting, unfiltered).
@@ -1117,12 +1200,13 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
     specular row against the $l > 2$ columns, the one σ-dependent product), the RSS is
     $bb - |e_b|^2 - h^TS^{-1}h$ with $S = A_{11} - Z^TZ$, $h = r_1 - Z^Te_b$, and
     $x_2 = F_2^{-1}H^T(e_b - Zx_1)/K_s$. $O(10\\,m)$ per channel and one 10×10 elimination instead of the
-    $(C, m, m)$ products of `_schur_rss` (tested equal to it, `tests/test_inverse.py`)."""
+    $(C, m, m)$ products of `_schur_rss` (tested equal to it, `tests/test_inverse.py`). `rows_fs`: the rows'
+    product with the source's weighted specular row at σ when already formed (`_rows_dot_many`), else None."""
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     kd = 1.0 - ks
     fs = _source_lobe(sp, sigma)
     wfs = jt.w * fs
-    rows_fs = jt.rows @ wfs
+    rows_fs = _rows_dot(jt, wfs) if rows_fs is None else rows_fs
     # cross terms with the (filtered) slow columns
     dfd, dfs = sp.rows_fd[:9], rows_fs[:9]  # (9,)
     sfd, sfs = sp.rows_fd[9:] * filt, rows_fs[9:] * filt  # (n,)
@@ -1152,10 +1236,11 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax):
 
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None,
-            rows_obs=None):
+            rows_obs=None, perm=None):
     """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here);
     `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None; `rows_obs`: the
-    eq.-25 rows of `obs` at `mu` (`_all_pixel_blocks`), or None (formed here)."""
+    eq.-25 rows of `obs` at `mu` (`_all_pixel_blocks`), or None (formed here); `perm`: the `_subset_first` order of
+    their pixels, or None (the order of `obs`)."""
     bl_obs, bl_sub = blocks
     if tab is not None and bl_sub is not None:
         jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax, _K0())
@@ -1168,10 +1253,11 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     if sub is obs:
         jt = jt_sub
     elif rows_obs is not None and bl_obs is not None:
-        jt = _joint_padded(obs, bl_obs, rows_obs, column)
+        jt = _joint_padded(obs, bl_obs, rows_obs, column, None if perm is None else perm[0])
     else:
         jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
-    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples)
+        perm = None
+    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples, None if perm is None else perm[1])
 
 
 def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column, chunk=None):
@@ -1291,27 +1377,41 @@ def _K0():
 def _joint_from_table(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k) -> _Joint:
     """`_joint` of the subset `o` from its `MirrorTable` (the same rows as `eq25_rows`, without evaluating the SH),
     with the `k`-th of the batched blocks `bl` (`_mu_blocks`; `k` a traced index: one program for every index), or
-    `bl` itself when it is not batched."""
-    bl = jax.tree_util.tree_map(lambda a: a[k], bl) if bl.g.dd.ndim == 3 else bl
-    npx = o.n_samples  # the table's first columns (its last ones are quadrature nodes)
-    f = tab.s_scale[:npx] if mu is None else tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu)
-    rows = jnp.concatenate([tab.d[:npx].T, tab.y2[: (lmax + 1) ** 2, :npx] * f[None, :]], 0)
-    return _Joint(_first(bl), rows, o.weights, o.values, o.normals, o.views, None)
-
-
-def _joint_padded(o: Observations, bl, rows, column) -> _Joint:
-    """`_Joint` of all pixels from the rows `_all_pixel_blocks` made, `(9 + n, N + pad)`: the pixels are padded to the
-    rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum.
-
-    The rows go into the `_Joint` as they are, outside any program (an input array returned by a jitted
-    function comes back as a copy: 182 MB at 3 × 256², 0.06-0.2 s measured)."""
-    b1, w, b, n, v, fvis = _pad_joint(o, bl, rows.shape[1], column)
-    return _Joint(b1, rows, w, b, n, v, fvis)
+    `bl` itself when it is not batched. The specular rows are the table's `ys` itself (not a copy: `f` carries
+    mu's Fresnel factor), so the `_Joint` is assembled here, outside the program (`_table_parts`) that makes the
+    rest: an input returned by a program comes back as a copy."""
+    bl_k, rows_d, f = _table_parts(o, tab, bl, mu, lmax, k)
+    if tab.ys.shape != ((lmax + 1) ** 2, o.n_samples):
+        raise ValueError(f"the table holds {tab.ys.shape} specular rows, not those of lmax {lmax} at {o.n_samples} samples")
+    return _Joint(bl_k, rows_d, tab.ys, f, o.weights, o.values, o.normals, o.views, None)
 
 
 @jaxsh.jit
-def _pad_joint(o: Observations, bl, width: int, column):
-    """The fields of `_joint_padded`'s `_Joint` but its rows, padded to `width` pixels."""
+def _table_parts(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k):
+    """`_joint_from_table`'s blocks (the `k`-th of `bl`), diffuse rows `(9, N)` and specular factor `(N,)`: one
+    program (run eagerly, these few operations were a compilation each at the first call)."""
+    bl = jax.tree_util.tree_map(lambda a: a[k], bl) if bl.g.dd.ndim == 3 else bl
+    npx = o.n_samples  # the table's first columns (its last ones are quadrature nodes)
+    f = tab.s_scale[:npx] if mu is None else tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu)
+    return _first(bl), tab.d[:npx].T, f
+
+
+def _joint_padded(o: Observations, bl, rows, column, order=None) -> _Joint:
+    """`_Joint` of all pixels from the rows `_all_pixel_blocks` made, `((9, N + pad), (n, N + pad))`: the pixels are padded to the
+    rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum; with `order`, taken
+    in that order first (`_subset_first`, the rows' own).
+
+    The rows go into the `_Joint` as they are, outside any program (an input array returned by a jitted
+    function comes back as a copy: 182 MB at 3 × 256², 0.06-0.2 s measured)."""
+    rows_d, rows_s = rows
+    b1, w, b, n, v, fvis = _pad_joint(o, bl, rows_d.shape[1], column, order)
+    return _Joint(b1, rows_d, rows_s, None, w, b, n, v, fvis)
+
+
+@jaxsh.jit
+def _pad_joint(o: Observations, bl, width: int, column, order):
+    """The fields of `_joint_padded`'s `_Joint` but its rows, in the order `order` (or None), padded to `width` pixels."""
+    o = o if order is None else _permuted(o, order)
     pad = width - o.n_samples
     up = jnp.zeros((pad, 3), o.normals.dtype).at[:, 2].set(1.0)
     fvis = None if column is None else jnp.pad(o.fast_visibility[:, column], (0, pad))
@@ -1324,19 +1424,20 @@ def _joint_jit(o, bl, mu, lmax, chunk, rcond, column):
     return _joint(o, bl, mu, lmax, chunk, rcond, column)
 
 
-def _joint_golden_parts(jt: _Joint, sp: _SourceParts, sigma, lmax) -> _GoldenParts:
+def _joint_golden_parts(jt: _Joint, sp: _SourceParts, sigma, lmax, rows_fs=None) -> _GoldenParts:
     """The $K_s$-independent parts of the joint RSS of `_joint_rss` at one σ, per channel (leading axis C), in
     the form of `_golden_ks`'s `_GoldenParts` with the source's energy as a tenth unknown: `_reduced_rss` of
     channel c at $K_s$ is `_joint_rss(jt, sp, ks, sigma)[0][c]` for `ks[c]` $= K_s$ (`tests/test_inverse.py`).
 
     Every term of `_joint_rss` is a quadratic form in $(K_d, K_s)$: $A_{11} = K_d^2 a_{dd} + K_dK_s a_{ds} +
     K_s^2 a_{ss}$ (its tenth row and column from the source's rows), $Z = K_d e_d + K_s e_s$ `(m, 10)`,
-    $r_1 = K_d r_d + K_s r_s$; only the source's specular row depends on σ (one product with the rows)."""
+    $r_1 = K_d r_d + K_s r_s$; only the source's specular row depends on σ (one product with the rows; `rows_fs`:
+    that product when already formed, `_rows_dot_many`, else None)."""
     filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
     f1 = filt[:9]
     fs = _source_lobe(sp, sigma)
     wfs = jt.w * fs
-    rows_fs = jt.rows @ wfs
+    rows_fs = _rows_dot(jt, wfs) if rows_fs is None else rows_fs
     g = jt.bl.g
     dfd, dfs = sp.rows_fd[:9], rows_fs[:9]
     sfd, sfs = sp.rows_fd[9:18] * f1, rows_fs[9:18] * f1  # the source against the filtered l <= 2 columns
@@ -1368,7 +1469,8 @@ def _profiled_sigmas(jt: _Joint, sp: _SourceParts, ts, lmax):
     """The joint RSS at each σ = exp(t) of `ts` `(T,)` with each channel's $K_s$ profiled out (`golden_ks_unit`
     per channel, as in stage 1), relative to the data's: `(rel (T,), ks (T, C))`. The parts of every σ come
     from one `vmap`, and the searches of all σ and channels run as one batch (`_golden_search`)."""
-    parts = jax.vmap(lambda t: _joint_golden_parts(jt, sp, jnp.exp(t), lmax))(ts)
+    rows_fs = _rows_dot_many(jt, jax.vmap(lambda t: jt.w * _source_lobe(sp, jnp.exp(t)))(ts))  # (T, 9 + n)
+    parts = jax.vmap(lambda t, r: _joint_golden_parts(jt, sp, jnp.exp(t), lmax, r))(ts, rows_fs)
     ks, rss, _ = _golden_search(parts, 1e-11, 1e-11, 100)
     return jnp.sum(rss, -1) / jnp.sum(jt.bl.g.bb), ks
 
@@ -1457,10 +1559,14 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
     a, b = np.meshgrid([-1.0, 0.0, 1.0], [-1.0, 0.0, 1.0], indexing="ij")
     a, b = jnp.asarray(a.ravel(), ks.dtype), jnp.asarray(b.ravel(), ks.dtype)
 
-    def rss_at(ai, bi):
-        return _joint_rss(jt, sp, ks + ai * hk, sigma + bi * hs, lmax)
+    # the rows against the source's row at the stencil's three σ, in one product (`_rows_dot_many`)
+    steps = jnp.asarray([-1.0, 0.0, 1.0], ks.dtype)
+    rows_fs = _rows_dot_many(jt, jax.vmap(lambda bi: jt.w * _source_lobe(sp, sigma + bi * hs))(steps))
 
-    rss, x1, x2 = jax.vmap(rss_at)(a, b)
+    def rss_at(ai, bi, r):
+        return _joint_rss(jt, sp, ks + ai * hk, sigma + bi * hs, lmax, r)
+
+    rss, x1, x2 = jax.vmap(rss_at)(a, b, rows_fs[b.astype(jnp.int32) + 1])
     r = rss.reshape(3, 3, c)  # [ks step, sigma step, channel]
     h_kk = (r[2, 1] - 2.0 * r[1, 1] + r[0, 1]) / hk**2
     h_ss = jnp.sum(r[1, 2] - 2.0 * r[1, 1] + r[1, 0]) / hs**2
@@ -1471,9 +1577,9 @@ def _profiled_hessian(jt, sp, ks, sigma, lmax):
 
 
 @jaxsh.jit(optimize=False)
-def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int):
+def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int, pos=None):
     """The refinement's estimate at `(ks, sigma)`: lighting, standard errors, rms, and the model at the first `n`
-    pixels of `jt` (`jt` may carry weight-0 padding after them)."""
+    pixels of `jt` (`jt` may carry weight-0 padding after them), or at its pixels `pos` `(n,)` (`_subset_first`)."""
     c = jt.b.shape[1]
     sp = _source_parts(jt, mu, d)
     hess, (rss, x1, x2) = _profiled_hessian(jt, sp, ks, sigma, lmax)
@@ -1501,7 +1607,8 @@ def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int):
     coef = jnp.concatenate([kd[:, None] * x1[:, :9], ks[:, None] * slow.T * filt[None, :]], 1)
     fs = _source_lobe(sp, sigma)
     src = (kd[:, None] * sp.fd[None, :] + ks[:, None] * fs[None, :]) * x1[:, 9][:, None]  # (C, N)
-    fitted = ((coef @ jt.rows + src)[:, :n]).T
+    full = _coef_rows(jt, coef) + src
+    fitted = (full[:, :n] if pos is None else full[:, pos]).T
     return ks, sigma, lighting, se[:c], se[c], status, its, rms, rel, data_ss, fitted
 
 

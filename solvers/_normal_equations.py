@@ -109,42 +109,55 @@ def pixel_chunks(n, v, chunk: int, *fields):
             *(cut(a) for a in fields))
 
 
-def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int, rows: bool = False):
+def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int, rows: bool = False,
+                    split: int | None = None):
     """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding).
 
-    With `rows`, also return the design rows of all pixels, diffuse and specular stacked, pixels last:
-    `(9 + n_coeffs, N + pad)` (`eq25_rows` with `coeffs_first`; the `pad = -N % chunk` last columns are the rows of
+    With `rows`, also return the design rows of all pixels, diffuse and specular, pixels last:
+    `((9, N + pad), (n_coeffs, N + pad))` (`eq25_rows` with `coeffs_first`; the `pad = -N % chunk` last columns are the rows of
     the padding's +z pixels, not 0: their weight 0 keeps them out of every sum, and callers drop them after a
     product; a slice to N would copy the whole array again), from the same pass (`factorize`'s refinement on all pixels
-    reads them). Returns `Gram` or `(Gram, rows)`."""
+    reads them). With `split` (a number of chunks, static), also the blocks of the first `split · chunk` pixels
+    alone, from the same pass (`factorize`: its search subset put first). Returns `Gram`, then `rows` with `rows`,
+    then the first pixels' `Gram` with `split`: a tuple when there is more than the `Gram`."""
     npx = n.shape[0]
     pad = (-npx) % chunk
     n_p, v_p, b_p, w_p, t_p, r_p = pixel_chunks(n, v, chunk, b, w, transfer, rvis)
     nc = (lmax + 1) ** 2
     c = b.shape[1]
     dt = n.dtype
-    init = Gram(
-        jnp.zeros((9, 9), dt), jnp.zeros((9, nc), dt), jnp.zeros((nc, nc), dt), jnp.zeros((9, c), dt),
-        jnp.zeros((nc, c), dt), jnp.zeros((c,), dt), jnp.zeros((), dt),
-    )
+    k = 9 + nc + c
+
+    if split is not None and not 0 < split <= n_p.shape[0]:
+        raise ValueError(f"`split` must be in [1, {n_p.shape[0]}] (chunks of {chunk} pixels), got {split}")
 
     def step(carry, xs):
-        acc, buf, i = carry
+        acc, count, buf, first, i = carry
         nn, vv, bb, ww, tt, rr = xs
         d, s = eq25_rows(nn, vv, tt, rr, mu, filt, lmax, coeffs_first=True)  # (9, chunk), (nc, chunk)
-        wd, ws = d * ww[None, :], s * ww[None, :]
-        g = Gram(
-            acc.dd + wd @ d.T, acc.ds + wd @ s.T, acc.ss + ws @ s.T, acc.db + wd @ bb, acc.sb + ws @ bb,
-            acc.bb + jnp.sum(ww[:, None] * bb * bb, 0), acc.count + jnp.sum((ww > 0).astype(dt)),
-        )
-        if rows:  # written in place into the (9 + nc, N + pad) carry (stacked scan outputs and a transpose: 2x slower)
-            buf = jax.lax.dynamic_update_slice(buf, d, (jnp.zeros_like(i), i * chunk))
-            buf = jax.lax.dynamic_update_slice(buf, s, (jnp.full_like(i, 9), i * chunk))
-        return (g, buf, i + 1), None
+        # one product of the stacked [d; s; b^T] with its weighted self gives every block (dd, ds, ss, db, sb, and
+        # bb on the diagonal of its last C x C): five products per chunk took 251 ms at 3 x 256^2, lmax 12, this 226
+        r = jnp.concatenate([d, s, bb.T], 0)  # (k, chunk)
+        acc = acc + jax.lax.dot_general(r * ww[None, :], r, (((1,), (1,)), ((), ())))
+        count = count + jnp.sum((ww > 0).astype(dt))
+        if rows:  # written in place into the (9, N + pad), (nc, N + pad) carry (stacked scan outputs and a transpose: 2x slower)
+            at = (jnp.zeros_like(i), i * chunk)
+            buf = (jax.lax.dynamic_update_slice(buf[0], d, at), jax.lax.dynamic_update_slice(buf[1], s, at))
+        if split is not None:  # the sums after the first `split` chunks
+            first = jax.tree_util.tree_map(lambda a, f: jnp.where(i + 1 == split, a, f), (acc, count), first)
+        return (acc, count, buf, first, i + 1), None
 
-    buf = jnp.zeros((9 + nc, npx + pad), dt) if rows else None
-    (out, buf, _), _ = jax.lax.scan(step, (init, buf, jnp.zeros((), jnp.int32)), (n_p, v_p, b_p, w_p, t_p, r_p))
-    return (out, buf) if rows else out
+    def blocks(acc, count):
+        e = 9 + nc
+        return Gram(acc[:9, :9], acc[:9, 9:e], acc[9:e, 9:e], acc[:9, e:], acc[9:e, e:], jnp.diagonal(acc[e:, e:]),
+                    count)
+
+    zero = (jnp.zeros((k, k), dt), jnp.zeros((), dt))
+    buf = (jnp.zeros((9, npx + pad), dt), jnp.zeros((nc, npx + pad), dt)) if rows else None
+    init = (*zero, buf, None if split is None else zero, jnp.zeros((), jnp.int32))
+    (acc, count, buf, first, _), _ = jax.lax.scan(step, init, (n_p, v_p, b_p, w_p, t_p, r_p))
+    out = (blocks(acc, count),) + ((buf,) if rows else ()) + (() if split is None else (blocks(*first),))
+    return out if len(out) > 1 else out[0]
 
 
 class MirrorTable(eqx.Module):
@@ -155,7 +168,9 @@ class MirrorTable(eqx.Module):
     pixels'; they add nothing to any sum). `y2` `(n_2, N + Q)`: $Y_{LM}$ for $L \\le 2l^*$ of the mirror
     directions, then of the nodes (its first $n = (l^*+1)^2$ rows are the specular rows' harmonics); `yq`
     `(Q, n_2)`: the nodes' harmonics (a copy of `y2`'s last columns, transposed) and `wq` `(Q,)` the grid's
-    weights (made once per table, not per call); `d` `(N + Q, 9)`: the diffuse rows; `s_scale` `(N + Q,)`:
+    weights (made once per table, not per call); `ys` `(n, N)`: the pixels' $Y_{lm}$, $l \\le l^*$ (a contiguous
+    copy of `y2[:n, :N]`: the specular rows of eq. 25 without their Fresnel factor and visibility, which
+    `factorize`'s refinement multiplies for every $\\mu$); `d` `(N + Q, 9)`: the diffuse rows; `s_scale` `(N + Q,)`:
     the reflected-ray visibility, 0 where the pixel is seen from behind; `cos_o` `(N + Q,)`:
     $\\cos\\theta_o$ (1 where seen from behind); `b` `(N + Q, C)`, `w` `(N + Q,)` (0 on the nodes).
     """
@@ -163,6 +178,7 @@ class MirrorTable(eqx.Module):
     y2: jax.Array
     yq: jax.Array
     wq: jax.Array
+    ys: jax.Array
     d: jax.Array
     s_scale: jax.Array
     cos_o: jax.Array
@@ -171,7 +187,7 @@ class MirrorTable(eqx.Module):
 
 
 def mirror_table(n, v, b, w, transfer, rvis, lmax: int) -> MirrorTable:
-    """`MirrorTable` of eq. 25's rows (`eq25_rows` without the Fresnel factor); memory $O(N (2l^*+1)^2)$.
+    """`MirrorTable` of eq. 25's rows (`eq25_rows` without the Fresnel factor); memory $O(N ((2l^*+1)^2 + (l^*+1)^2))$.
 
     The harmonics of the mirror directions and of the quadrature nodes are one `jaxsh.real_sh` call (one
     copy of its loop in the compiled program: each copy cost ~0.2 s of XLA compilation)."""
@@ -184,7 +200,8 @@ def mirror_table(n, v, b, w, transfer, rvis, lmax: int) -> MirrorTable:
     q = nodes.shape[0]
     y2 = jaxsh.real_sh(jnp.concatenate([jaxsh.reflect(v, n), nodes]), 2 * lmax, coeffs_first=True)
     pad = lambda a, value=0.0: jnp.concatenate([a, jnp.full((q,) + a.shape[1:], value, a.dtype)])  # noqa: E731
-    return MirrorTable(y2, y2[:, -q:].T, wq.reshape(-1), pad(d.T), pad(scale), pad(jnp.where(vis, cos_o, 1.0), 1.0),
+    ys = y2[: (lmax + 1) ** 2, : n.shape[0]]
+    return MirrorTable(y2, y2[:, -q:].T, wq.reshape(-1), ys, pad(d.T), pad(scale), pad(jnp.where(vis, cos_o, 1.0), 1.0),
                        pad(b), pad(w))
 
 

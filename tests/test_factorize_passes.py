@@ -1,0 +1,161 @@
+"""`factorize`'s passes over the pixels (session 29): the stacked Gram product, the search subset's blocks from the
+all-pixel pass (`_subset_first`, `accumulate_gram(split=...)`), and the refinement's rows kept apart from their
+Fresnel factor (`_Joint.f`, `_rows_dot_many`, `_coef_rows`). References: NumPy sums over the design rows, the
+`MirrorTable` quadrature the subset's blocks came from before, and the renderer (`solvers.predict`)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import solvers
+from solvers import _factorize as F
+from solvers._normal_equations import accumulate_gram, eq25_rows
+
+
+def _directions(rng, n):
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _observations(rng, n_px, transfer=False, rvis=False):
+    n, v = _directions(rng, n_px), _directions(rng, n_px)
+    v = np.where(np.sum(n * v, 1, keepdims=True) < -0.5, -v, v)  # most pixels seen from the front, some not
+    w = rng.uniform(0.5, 1.5, n_px) * (rng.uniform(size=n_px) > 0.1)  # some zero weights
+    f = lambda a: None if a is None else jnp.asarray(a)  # noqa: E731
+    return solvers.Observations(f(n), f(v), f(rng.uniform(size=(n_px, 3))), f(w),
+                                f(rng.normal(size=(n_px, 9)) if transfer else None), None,
+                                f(rng.uniform(size=n_px) if rvis else None), None,
+                                jnp.zeros(n_px, jnp.int32), jnp.arange(n_px), ((1, n_px),))
+
+
+def _numpy_blocks(o, mu, lmax, sel=slice(None)):
+    """dd, ds, ss, db, sb, bb, count of eq. 25 by NumPy sums over the rows of the pixels `sel` (one shot, no chunks)."""
+    d, s = (np.asarray(a) for a in jax.jit(eq25_rows, static_argnums=(6, 7))(
+        o.normals, o.views, o.transfer, o.reflected_visibility, mu, None, lmax, True))
+    w, b = np.asarray(o.weights)[sel], np.asarray(o.values)[sel]
+    d, s = d[:, sel], s[:, sel]
+    return {"dd": (d * w) @ d.T, "ds": (d * w) @ s.T, "ss": (s * w) @ s.T, "db": (d * w) @ b, "sb": (s * w) @ b,
+            "bb": np.sum(w[:, None] * b * b, 0), "count": float(np.count_nonzero(w > 0))}, (d, s)
+
+
+@pytest.mark.parametrize("transfer, rvis", [(False, False), (True, True)])
+def test_accumulate_gram_stacked_product_and_split_equal_numpy_sums(rng, transfer, rvis):
+    """Every block of the one stacked product per chunk, the first `split` chunks' blocks from the same pass, and
+    the rows (diffuse, specular) against NumPy sums of the design rows; the padding's columns are the +z pixel's
+    rows (finite), and `split` outside the chunks is an error naming it."""
+    o = _observations(rng, 2900, transfer, rvis)
+    mu, lmax, chunk, split = jnp.asarray(1.7), 4, 512, 3
+    run = jax.jit(accumulate_gram, static_argnums=(8, 9, 10, 11))
+    g, (rows_d, rows_s), first = run(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility,
+                                     mu, None, lmax, chunk, True, split)
+    ref, (d, s) = _numpy_blocks(o, mu, lmax)
+    ref_first, _ = _numpy_blocks(o, mu, lmax, slice(0, split * chunk))
+    for got, want in ((g, ref), (first, ref_first)):
+        for field, r in want.items():
+            x = np.asarray(getattr(got, field))
+            assert np.max(np.abs(x - r)) <= 1e-13 * max(np.max(np.abs(r)), 1.0), field
+    assert float(first.count) < float(g.count)  # the first chunks alone, not every pixel
+    pad = (-2900) % chunk
+    assert rows_d.shape == (9, 2900 + pad) and rows_s.shape == ((lmax + 1) ** 2, 2900 + pad)
+    np.testing.assert_allclose(np.asarray(rows_d)[:, :2900], d, rtol=1e-13, atol=1e-14)  # chunked against one shot
+    np.testing.assert_allclose(np.asarray(rows_s)[:, :2900], s, rtol=1e-13, atol=1e-14)
+    assert np.all(np.isfinite(np.asarray(rows_s)[:, 2900:]))
+    for bad in (0, -1, 7):  # 2900 pixels: 6 chunks of 512
+        with pytest.raises(ValueError, match="split"):
+            run(o.normals, o.views, o.values, o.weights, None, None, mu, None, lmax, chunk, False, bad)
+
+
+def test_subset_first_order_puts_the_subset_in_whole_chunks_first():
+    n, chunk = 23, 4
+    idx = np.array([2, 3, 5, 11, 17, 22])
+    order, pos, split = F._subset_first(n, idx, chunk)
+    order, pos = np.asarray(order), np.asarray(pos)
+    assert split == 2 and order.shape == (2 * 4 + n - 6,)
+    np.testing.assert_array_equal(order[:6], idx)
+    np.testing.assert_array_equal(order[6:8], [n, n])  # the weight-0 pixel fills the subset's last chunk
+    np.testing.assert_array_equal(order[8:], np.setdiff1d(np.arange(n), idx))
+    np.testing.assert_array_equal(order[pos], np.arange(n))
+    # a subset of whole chunks needs no filler
+    order2, _, split2 = F._subset_first(n, idx[:4], chunk)
+    assert split2 == 1 and n not in np.asarray(order2)
+
+
+def test_permuted_filler_is_a_weightless_valid_sample(rng):
+    o = _observations(rng, 50, transfer=True, rvis=True)
+    p = F._permuted(o, jnp.asarray([3, 50, 7]))
+    np.testing.assert_array_equal(np.asarray(p.normals)[1], [0, 0, 1])
+    np.testing.assert_array_equal(np.asarray(p.views)[1], [0, 0, 1])
+    assert float(p.weights[1]) == 0 and np.all(np.asarray(p.values)[1] == 0)
+    np.testing.assert_array_equal(np.asarray(p.values)[[0, 2]], np.asarray(o.values)[[3, 7]])
+    np.testing.assert_array_equal(np.asarray(p.transfer)[[0, 2]], np.asarray(o.transfer)[[3, 7]])
+
+
+def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng):
+    """The refinement's blocks on the search subset at the final mu come from the all-pixel pass (the subset's
+    pixels first); they used to come from the subset's `MirrorTable` (`_mu_blocks`): equal to rounding, and
+    the all-pixel blocks equal a pass in the original order."""
+    o = _observations(rng, 5000, rvis=True)
+    idx = np.sort(rng.choice(5000, 1800, replace=False))
+    sub = o.subset(idx)
+    mu, lmax, chunk = jnp.asarray(1.45), 6, 512
+    order, pos, split = F._subset_first(o.n_samples, idx, chunk)
+    bl, rows, bl_sub = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split)
+    via_table = F._mu_blocks(F._mirror_table_jit(sub, lmax), jnp.full((9,), mu), lmax, 1e-12)
+    plain, _, none = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, False)
+    assert none is None
+    for field in ("dd", "ds", "ss", "db", "sb", "bb", "count"):
+        for got, want in ((bl_sub, via_table), (bl, plain)):
+            x, r = np.asarray(getattr(got.g, field)), np.asarray(getattr(want.g, field))
+            assert x.shape == r.shape and x.shape[0] == 9, field  # batched like a round of the mu search
+            assert np.max(np.abs(x - r)) <= 1e-12 * max(np.max(np.abs(r)), 1.0), field
+    # the rows' columns follow `order`: column pos[i] is pixel i
+    _, (d, s) = _numpy_blocks(o, mu, lmax)
+    np.testing.assert_allclose(np.asarray(rows[1])[:, np.asarray(pos)], s, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(rows[0])[:, np.asarray(pos)], d, rtol=0, atol=1e-13)
+
+
+def test_rows_products_with_and_without_the_fresnel_factor(rng):
+    """`_rows_dot`, `_rows_dot_many` and `_coef_rows` against products with the rows formed (`_Joint.rows`), with
+    the specular factor `f` (the table's rows) and without it (the all-pixel rows)."""
+    o = _observations(rng, 700)
+    mu, lmax = jnp.asarray(1.6), 5
+    direct = F._joint_jit(o, None, mu, lmax, 256, 1e-12, None)
+    tab = F._mirror_table_jit(o, lmax)
+    via = F._joint_from_table(o, tab, direct.bl, mu, lmax, F._K0())
+    assert direct.f is None and via.f is not None and via.rows_s is tab.ys  # shared with the table, not copied
+    np.testing.assert_allclose(np.asarray(via.rows), np.asarray(direct.rows), rtol=1e-12, atol=1e-13)
+    x = jnp.asarray(rng.normal(size=(4, 700)))
+    coef = jnp.asarray(rng.normal(size=(3, 9 + (lmax + 1) ** 2)))
+    for jt in (direct, via):
+        rows = np.asarray(jt.rows)
+        np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot_many)(jt, x)), np.asarray(x) @ rows.T, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot)(jt, x[0])), rows @ np.asarray(x[0]), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(jax.jit(F._coef_rows)(jt, coef)), np.asarray(coef) @ rows, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="specular rows"):
+        F._joint_from_table(o, tab, direct.bl, mu, lmax - 1, F._K0())
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    cap = solvers.sphere_capture(solvers.TorranceSparrow(jnp.asarray([0.6, 0.5, 0.4]), jnp.asarray([0.3] * 3),
+                                                         jnp.asarray(1.6), jnp.asarray(0.15)),
+                                 size=40, n_views=3, noise=0.01, seed=3, lighting_lmax=12)
+    return cap, solvers.observations(cap.gbuffers, cap.images)
+
+
+@pytest.mark.parametrize("refine_mu", [False, True])
+def test_factorize_on_a_subset_returns_fitted_in_the_pixels_order(sphere, refine_mu):
+    """With a search subset the all-pixel rows are in the subset-first order; `fitted` comes back in the samples'
+    own order: it equals the renderer's images at the estimate (another program, exact SH sums) and its
+    weighted residual is `rms`."""
+    cap, obs = sphere
+    r = solvers.factorize(obs, 8, search_pixels=1500, refine_mu=refine_mu)
+    assert solvers.status_name(r.status) == "converged"
+    for img, gb in zip(obs.to_images(r.fitted), cap.gbuffers):
+        ref = np.asarray(solvers.predict(r.brdf, r.lighting, gb.normal, gb.view, mask=gb.mask, method="exact"))
+        m = np.asarray(gb.mask)
+        np.testing.assert_allclose(img[m], ref[m], rtol=1e-9, atol=1e-12 * np.abs(ref[m]).max())
+    w, res = np.asarray(obs.weights), np.asarray(r.fitted) - np.asarray(obs.values)
+    n_pos = np.count_nonzero(w > 0)
+    np.testing.assert_allclose(np.sqrt(np.sum(w[:, None] * res**2) / (n_pos * 3)), float(r.rms), rtol=1e-9)
