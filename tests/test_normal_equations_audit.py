@@ -72,3 +72,33 @@ def test_check_float_refuses_bools_and_strings():
         with pytest.raises(ValueError, match="`rtol`"):
             check_float(v, "rtol")
     assert check_float(np.float32(0.5), "rtol") == 0.5
+
+
+@pytest.mark.parametrize("dt, span", [(np.float64, 12.0), (np.float32, 6.0)])
+def test_solve_spd_small_at_unknowns_of_very_different_scales(dt, span):
+    """A 10x10 SPD system whose diagonal spans 10^±span (an unknown in other units than the rest, as the source's
+    energy beside the lighting's coefficients): the jitter was 16 eps times the largest diagonal entry and
+    swamped the smallest unknowns' (x off in its first digit); solved Jacobi-scaled it matches NumPy's solve
+    to the scaled system's condition. Batched, with an exactly singular (zero) row that stays finite."""
+    from solvers._normal_equations import inverse_spd_small, solve_spd_small
+
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(3, 10, 10))
+    c = q @ np.swapaxes(q, -1, -2) + 10 * np.eye(10)  # well conditioned in its own units
+    d = 10.0 ** np.linspace(-span, span, 10) / 2  # diagonal entries d^2: 10^(-2 span) .. 10^(2 span), over 4
+    m = c * d[:, None] * d[None, :]
+    x_true = rng.normal(size=(3, 10)) / d
+    r = np.einsum("bij,bj->bi", m, x_true)
+    x = np.asarray(solve_spd_small(jnp.asarray(m, dt), jnp.asarray(r, dt)))
+    tol = 1e-10 if dt == np.float64 else 2e-3
+    np.testing.assert_allclose(x * d, x_true * d, rtol=0, atol=tol * np.max(np.abs(x_true * d)))
+    inv = np.asarray(inverse_spd_small(jnp.asarray(m[0], dt)))
+    ref = np.linalg.inv(m[0])
+    np.testing.assert_allclose(inv * d[:, None] * d[None, :], ref * d[:, None] * d[None, :], rtol=0,
+                               atol=tol * np.max(np.abs(ref * d[:, None] * d[None, :])))
+    sing = m[0].copy()
+    sing[4, :] = sing[:, 4] = 0.0
+    rs = r[0].copy()
+    rs[4] = 0.0
+    xs = np.asarray(solve_spd_small(jnp.asarray(sing, dt), jnp.asarray(rs, dt)))
+    assert np.all(np.isfinite(xs)) and xs[4] == 0.0
