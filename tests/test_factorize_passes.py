@@ -91,6 +91,25 @@ def test_permuted_filler_is_a_weightless_valid_sample(rng):
     np.testing.assert_array_equal(np.asarray(p.transfer)[[0, 2]], np.asarray(o.transfer)[[3, 7]])
 
 
+def test_pad_joint_keeps_every_field_with_its_pixel(rng):
+    """The all-pixel `_Joint`'s fields (weights, data, normals, views, the source's shadow column) follow the rows'
+    subset-first order: position `pos[i]` holds pixel i's values, and the filler and padding weigh nothing."""
+    o = _observations(rng, 300, transfer=True, rvis=True)
+    o = solvers.Observations(o.normals, o.views, o.values, o.weights, o.transfer, jnp.asarray(rng.uniform(size=(300, 2))),
+                             o.reflected_visibility, None, o.view_index, o.pixel_index, o.image_shapes)
+    idx = np.sort(rng.choice(300, 70, replace=False))
+    order, pos, split = F._subset_first(300, idx, 64)
+    width = -(-order.shape[0] // 64) * 64
+    bl9 = F._all_pixel_blocks(o, jnp.asarray(1.5), 4, 64, 1e-12, False)[0]
+    bl, w, b, n, v, fvis = F._pad_joint(o, bl9, width, 1, order)
+    p = np.asarray(pos)
+    for got, want in ((w, o.weights), (b, o.values), (n, o.normals), (v, o.views), (fvis, o.fast_visibility[:, 1])):
+        assert got.shape[0] == width
+        np.testing.assert_array_equal(np.asarray(got)[p], np.asarray(want))
+    others = np.setdiff1d(np.arange(width), p)
+    assert others.size == width - 300 and np.all(np.asarray(w)[others] == 0)
+
+
 def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng):
     """The refinement's blocks on the search subset at the final mu come from the all-pixel pass (the subset's
     pixels first); they used to come from the subset's `MirrorTable` (`_mu_blocks`): equal to rounding, and
