@@ -37,7 +37,7 @@ from ._custom_types import SequenceLike
 from ._checks import as_jax, check_dirs, check_lmax_range, check_positive_int
 from ._indexing import sh_degrees
 from ._model import Lighting, TorranceSparrow
-from ._reflectance import _fresnel_normalized_jit, _half_angle_pairs, _safe_sqrt, _theta_h_sq, fresnel_normalized
+from ._reflectance import _fresnel_normalized_jit, _half_angle_pairs, _index, _safe_sqrt, _theta_h_sq, fresnel_normalized
 from ._sh import REAL_SH_MAX_LMAX, _band_sums_scan, _real_sh_flat, _sh2, _unit_vectors, _z_features
 from ._spectra import _microfacet_filter, lambertian_spectrum, microfacet_spectrum
 from ._transforms import _synthesize
@@ -84,7 +84,8 @@ class PracticalTerms(eqx.Module):
     per-pixel `(N, C)`; `mu=None` means $F = 1$. `terms.components(...)`
     gives the three terms of eq. 24 (what `render_practical` returns).
 
-    **Checks.** $\\sigma \\le 0$ or infinite and $\\mu \\le 0$ are errors (a
+    **Checks.** $\\sigma \\le 0$ or infinite and $\\mu < 1$ are errors (as in the BRDF models: a relative index of
+    refraction into the surface; $0 < \\mu < 1$ was accepted here until session 29) (a
     `ValueError` for concrete values, `equinox.error_if` under `jit`; NaN
     propagates). `fresnel`, `specular_unit` and `components` take
     `check=False` for callers whose parametrization guarantees the ranges
@@ -113,7 +114,7 @@ class PracticalTerms(eqx.Module):
         if mu is None:
             return jnp.ones_like(self.cos_o)
         mu = jnp.asarray(mu, self.cos_o.dtype)
-        return fresnel_normalized(self.cos_o, mu) if check else _fresnel_normalized_jit(self.cos_o, mu)
+        return fresnel_normalized(self.cos_o, _index(mu, "mu")) if check else _fresnel_normalized_jit(self.cos_o, mu)
 
     def _specular(self, mu, sigma, check: bool = True):
         """$F L_{slow}(R)$ and $F/(4\\cos\\theta_o)\\sum_j T_j(\\sigma)$ of eq. 24 for $K_s = 1$, each `(N, C)`."""

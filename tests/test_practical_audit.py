@@ -48,3 +48,26 @@ def test_float32_exact_band_sums_inside_their_range_stay_accurate():
     ref = np.asarray(jaxsh.render_practical(d.astype(np.float64), d.astype(np.float64), np.zeros(1), np.ones(1), None,
                                             0.3, slow_sh=c.astype(np.float64), method="exact").total)
     assert np.all(np.isfinite(got)) and np.abs(got - ref).max() < 1e-4 * np.abs(ref).max()
+
+
+def test_practical_terms_refuse_an_index_below_one_as_the_brdfs_do():
+    """0 < mu < 1 passed `PracticalTerms` (its Fresnel check was fresnel_normalized's mu > 0) while
+    `jaxsh.torrance_sparrow` and `render_practical` refuse mu < 1; now the terms do too, concrete and under jit.
+    mu = 1 (the limit) and mu > 1 stay accepted; `check=False` leaves the check to the caller."""
+    import equinox as eqx
+    import jax
+
+    d, c = _scene(4, n=50)
+    d, c = d.astype(np.float64), c.astype(np.float64)
+    terms = jaxsh.practical_terms(d, d, slow_sh=c)
+    kd, ks = np.array([0.5]), np.array([0.3])
+    for bad in (0.5, 0.999):
+        with pytest.raises(ValueError, match="`mu` must be >= 1"):
+            terms(kd, ks, bad, 0.2)
+        with pytest.raises(eqx.EquinoxRuntimeError, match="`mu` must be >= 1"):
+            jax.block_until_ready(eqx.filter_jit(lambda m: terms.fresnel(m))(jnp.asarray(bad)))
+        with pytest.raises(ValueError, match="`mu` must be >= 1"):
+            jaxsh.torrance_sparrow(d, d, d, 0.5, 0.3, bad, 0.2)  # the BRDF itself: the rule this follows
+    for ok in (1.0, 1.5):
+        assert np.all(np.isfinite(np.asarray(terms(kd, ks, ok, 0.2))))
+    assert np.all(np.isfinite(np.asarray(terms.fresnel(0.5, check=False))))  # unchecked: the caller's range
