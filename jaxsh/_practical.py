@@ -84,10 +84,10 @@ class PracticalTerms(eqx.Module):
     per-pixel `(N, C)`; `mu=None` means $F = 1$. `terms.components(...)`
     gives the three terms of eq. 24 (what `render_practical` returns).
 
-    **Checks.** $\\sigma \\le 0$ or infinite and $\\mu < 1$ are errors (as in the BRDF models: a relative index of
-    refraction into the surface; $0 < \\mu < 1$ was accepted here until session 29) (a
+    **Checks.** $\\sigma \\le 0$ or infinite and $\\mu < 1$ are errors, as in the BRDF models ($\\mu$ is
+    the relative index into the surface; $0 < \\mu < 1$ passed until session 29): a
     `ValueError` for concrete values, `equinox.error_if` under `jit`; NaN
-    propagates). `fresnel`, `specular_unit` and `components` take
+    propagates. `fresnel`, `specular_unit` and `components` take
     `check=False` for callers whose parametrization guarantees the ranges
     (`solvers.fit_brdf` evaluates the model at $\\mu = 1 + e^{u}$,
     $\\sigma = e^{v}$): the values are the same, and the traced checks (a
