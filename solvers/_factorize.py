@@ -774,6 +774,7 @@ def factorize(
     dual = None
     rows_obs = None  # the eq.-25 rows of all pixels at the stage-1 mu (direct path with a subset), for the refinement
     perm = None  # the order of those rows' pixels (`_subset_first`), or None: as in `obs`
+    win = None  # the joint mu search's first window's blocks when stage 1 takes its blocks from them
     blocks = (None, None)  # the eq.-25 blocks at the stage-1 mu on all pixels and on the subset, for the refinement
     if lighting_method == "dual":
         ks, golden_steps = _stage1_final_dual(obs, mu, dual_height)
@@ -787,7 +788,13 @@ def factorize(
         # with the joint mu search to come, stage 1 and its source are redone on all pixels at the mu it finds:
         # here they only start it, from the subset's blocks (the all-pixel pass at this mu was 0.23 s, wasted)
         joint_mu = refine and find_sigma and refine_mu and mu is not None
-        if sub is obs or joint_mu:
+        if joint_mu and _joint_window(best)[4] == best:
+            # the joint search's first window holds this mu in its middle: its batch (this mu first, the rest after)
+            # serves stage 1 here and the search later (a batch of 9 copies of this mu was 61 ms more)
+            win = _mu_blocks(tab, jax.device_put((1.0 + np.exp(_joint_window(best)[_WINDOW_ORDER])).astype(dt)), lmax,
+                             rcond)
+            bl_obs = bl_sub = win
+        elif sub is obs or joint_mu:
             bl_obs = bl_sub = _mu_blocks(tab, mu9, lmax, rcond)
         else:
             if refine and find_sigma:  # the subset's blocks from the same pass (`_subset_first`)
@@ -842,7 +849,8 @@ def factorize(
         jt1 = _joint_from_table(sub, tab, blocks[1], mu, lmax, _K0())
         column = _source_column(jt1, sub.fast_visibility, mu, ks, src.direction, src.sigma, lmax)
         t2, c2, n_mu = _joint_mu_search(sub, tab, lmax, best, ks, src.direction, src.sigma,
-                                        min(int(max_steps), _MU_JOINT_SIGMA_GRIDS), rtol, atol, rcond, column)
+                                        min(int(max_steps), _MU_JOINT_SIGMA_GRIDS), rtol, atol, rcond, column,
+                                        first=win)
         # the profile's curvature in t: of RSS / data energy on the subset (`_refine_search`'s value), so times
         # the subset's energy, then scaled to all positive samples (as stage 1's; it lacked the energy: se_mu was
         # sqrt(data energy) times too large, 126x in a Monte Carlo, and counted weight-0 samples of `sub is obs`)
@@ -1260,7 +1268,25 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples, None if perm is None else perm[1])
 
 
-def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column, chunk=None):
+def _joint_window(t1):
+    """The joint μ search's 9 values of $\\log(\\mu - 1)$: evenly spaced over $2w$ around `t1`
+    (`_MU_JOINT_HALF_WIDTH`), shifted (not shrunk) to lie inside stage 1's range. Unshifted, the middle value is
+    `t1` itself, bitwise (`factorize` then takes stage 1's blocks at `t1` from the window's batch)."""
+    lo = min(max(t1 - _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[0]), _MU_T_RANGE[1] - 2 * _MU_JOINT_HALF_WIDTH)
+    ts = np.linspace(lo, lo + 2 * _MU_JOINT_HALF_WIDTH, 9)
+    if lo == t1 - _MU_JOINT_HALF_WIDTH:
+        ts[4] = t1
+    return ts
+
+
+# the window's values in the order of their `_mu_blocks` batch when stage 1 shares it: the middle one (stage 1's
+# mu) first, where `_golden_batch` and `_lighting_and_source` read a batch's blocks
+_WINDOW_ORDER = np.array([4, 0, 1, 2, 3, 5, 6, 7, 8])
+_WINDOW_SLOT = np.argsort(_WINDOW_ORDER)  # the batch index of each window value
+
+
+def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column, chunk=None,
+                     first=None):
     """$t = \\log(\\mu - 1)$ that minimizes the joint model's profiled RSS on the subset (its $(K_s, \\sigma)$
     re-searched at each $\\mu$ by `_refine_search`): 9 values evenly spaced on $[t_1 - w, t_1 + w]$
     (`_MU_JOINT_HALF_WIDTH`, within stage 1's range) around the stage-1 value $t_1$, their blocks in one batch
@@ -1270,30 +1296,30 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
     The joint model holds the source as a delta, so its $\\mu$ is not biased that way. Reuses the compiled
     programs of stage 1 and the refinement (`_mu_blocks`, `_joint_from_table`, `_refine_search`). Without a
     table (`tab` None: a subset too large for one) each value's blocks and rows come from direct sums over the
-    subset (`_joint_jit`, in chunks of `chunk` pixels), the refinement's program on that path.
+    subset (`_joint_jit`, in chunks of `chunk` pixels), the refinement's program on that path. `first`: the
+    first window's blocks when already formed (`factorize`: a batch in the order `_WINDOW_ORDER`), or None.
     Returns `(t, the profile's curvature in t on the subset or None, evaluations)`."""
     dt = sub.values.dtype
+    window = _joint_window
 
-    def window(centre):  # 2 w wide, shifted (not shrunk) to lie inside stage 1's range
-        lo = min(max(centre - _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[0]), _MU_T_RANGE[1] - 2 * _MU_JOINT_HALF_WIDTH)
-        return np.linspace(lo, lo + 2 * _MU_JOINT_HALF_WIDTH, 9)
-
-    def profile(ts):
-        bl = None if tab is None else _mu_blocks(tab, jax.device_put((1.0 + np.exp(ts)).astype(dt)), lmax, rcond)
+    def profile(ts, bl=None):
+        slot = np.arange(len(ts)) if bl is None else _WINDOW_SLOT
+        if bl is None and tab is not None:
+            bl = _mu_blocks(tab, jax.device_put((1.0 + np.exp(ts)).astype(dt)), lmax, rcond)
         vals = []
         for k, t in enumerate(ts):
             mu = jax.device_put(np.asarray(1.0 + np.exp(t), dt))
             if tab is None:
                 jt = _joint_jit(sub, None, mu, lmax, chunk, rcond, column)
             else:
-                jt = _joint_from_table(sub, tab, bl, mu, lmax, jax.device_put(np.int32(k)))
+                jt = _joint_from_table(sub, tab, bl, mu, lmax, jax.device_put(np.int32(slot[k])))
                 if column is not None:
                     jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
             vals.append(float(_refine_search(jt, mu, ks0, d, sigma0, lmax, *_limits(max_steps, rtol, atol))[4]))
         return np.where(np.isfinite(vals), vals, np.inf)
 
     ts = window(t1)
-    vals = profile(ts)
+    vals = profile(ts, None if first is None or tab is None else first)
     n = len(ts)
     if not np.any(np.isfinite(vals)):
         return t1, None, n

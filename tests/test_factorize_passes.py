@@ -178,3 +178,27 @@ def test_factorize_on_a_subset_returns_fitted_in_the_pixels_order(sphere, refine
     w, res = np.asarray(obs.weights), np.asarray(r.fitted) - np.asarray(obs.values)
     n_pos = np.count_nonzero(w > 0)
     np.testing.assert_allclose(np.sqrt(np.sum(w[:, None] * res**2) / (n_pos * 3)), float(r.rms), rtol=1e-9)
+
+
+def test_joint_window_holds_stage_one_mu_in_its_middle_and_shares_its_batch(rng):
+    """The joint mu search's first window: 9 values over 2 w around t1, t1 itself (bitwise) in the middle unless the
+    window had to be shifted into stage 1's range. Stage 1 then reads its blocks from the window's batch (t1 first,
+    `_WINDOW_ORDER`): equal to the batch of 9 copies of its mu it used before."""
+    w, (lo, hi) = F._MU_JOINT_HALF_WIDTH, F._MU_T_RANGE
+    for t1 in (-0.8, -1.9141484640510031, -1.3770710475691386, lo + w + 1e-9):  # (the 2nd, 3rd: linspace's middle is not t1)
+        ts = F._joint_window(t1)
+        assert ts[4] == t1 and np.allclose(np.diff(ts), 2 * w / 8, rtol=1e-12, atol=0)
+    for t1 in (lo + 0.1, hi - 0.2):  # shifted: t1 is not in the middle
+        ts = F._joint_window(t1)
+        assert ts[0] >= lo and ts[-1] <= hi + 1e-12 and ts[4] != t1
+    np.testing.assert_array_equal(F._WINDOW_ORDER[F._WINDOW_SLOT], np.arange(9))
+    o = _observations(rng, 900)
+    tab = F._mirror_table_jit(o, 5)
+    t1 = -0.8
+    ts = F._joint_window(t1)
+    win = F._mu_blocks(tab, jnp.asarray(1.0 + np.exp(ts[F._WINDOW_ORDER])), 5, 1e-12)
+    copies = F._mu_blocks(tab, jnp.full((9,), 1.0 + np.exp(t1)), 5, 1e-12)
+    for field in ("ds", "ss", "sb"):
+        a, b = np.asarray(getattr(win.g, field))[0], np.asarray(getattr(copies.g, field))[0]
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-14 * np.max(np.abs(b)))
+    np.testing.assert_allclose(np.asarray(F._golden_batch(win)[1]), np.asarray(F._golden_batch(copies)[1]), rtol=1e-12)
