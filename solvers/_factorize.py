@@ -788,11 +788,11 @@ def factorize(
         # with the joint mu search to come, stage 1 and its source are redone on all pixels at the mu it finds:
         # here they only start it, from the subset's blocks (the all-pixel pass at this mu was 0.23 s, wasted)
         joint_mu = refine and find_sigma and refine_mu and mu is not None
-        if joint_mu and _joint_window(best)[4] == best:
+        ts_win = _joint_window(best) if joint_mu else None
+        if joint_mu and ts_win[4] == best:
             # the joint search's first window holds this mu in its middle: its batch (this mu first, the rest after)
             # serves stage 1 here and the search later (a batch of 9 copies of this mu was 61 ms more)
-            win = _mu_blocks(tab, jax.device_put((1.0 + np.exp(_joint_window(best)[_WINDOW_ORDER])).astype(dt)), lmax,
-                             rcond)
+            win = _mu_blocks(tab, jax.device_put((1.0 + np.exp(ts_win[_WINDOW_ORDER])).astype(dt)), lmax, rcond)
             bl_obs = bl_sub = win
         elif sub is obs or joint_mu:
             bl_obs = bl_sub = _mu_blocks(tab, mu9, lmax, rcond)
