@@ -23,7 +23,7 @@ $E^T W q$, $q^T W q$) is formed once, over the pixels, and each step of the
 per-channel search over $K_s$ is a 9×9 solve and a quadratic form — the same
 RSS as `inverse_lighting_dual(..., nonneg=False)` at that $(K_s, \\mu)$
 (tested). The search over $(\\mu, K_s)$ is the one of `factorize` (module
-`_factorize`): a grid in $\\log(\\mu - 1)$ with two zooms and a parabola, and
+`_factorize`): a grid in $\\log(\\mu - 1)$, then the polynomial through 9 Chebyshev points on its best bracket, and
 per channel `optimistix.GoldenSearch` over $K_s$.
 
 **Roughness (eq. 26) from the angular image.** The image is the lighting

@@ -83,8 +83,8 @@ def test_every_solver_result_is_a_solution(scene, obs):
     assert int(sh.iterations) == 0
     fa = solvers.factorize(obs, 4, search_pixels=None, max_steps=30)
     _check_contract(fa, fa.brdf)
-    assert int(fa.stats["num_mu_candidates"]) == 23 + 9  # stage 1's grids, then the joint model's 9 (`refine_mu`)
-    assert int(fa.iterations) == 23 + 9 + int(fa.stats["num_sigma_candidates"])
+    assert int(fa.stats["num_mu_candidates"]) == 9 + 9 + 9  # stage 1: a grid, 9 Chebyshev points; the joint model's 9
+    assert int(fa.iterations) == 27 + int(fa.stats["num_sigma_candidates"])
     assert int(fa.stats["num_steps_bisection"]) > 0 and np.all(np.asarray(fa.stats["num_steps_golden"]) > 0)
     assert solvers.status_name(fa.status) in ("converged", "max_steps_reached")
 
