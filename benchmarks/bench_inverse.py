@@ -48,11 +48,13 @@ What is timed (wall clock; "first" = first call incl. tracing + XLA compile,
    error from its Jacobian.
 3. Factorization, unknown lighting and BRDF (R&H sec. 6.3, l* = 12, kd + ks = 1).
    jaxsh: ``solvers.factorize(refine_mu=False)`` (searches on a 40,000-pixel subset, final
-   solves on all pixels; mu by grid + zooms, ks by golden section per
+   solves on all pixels; mu by a grid, then the minimum of the interpolant
+   through 9 Chebyshev points on its best bracket; ks by golden section per
    channel; sigma from the recovered source, eq. 26 with the band-limit
    correction; joint refinement of (ks, sigma) with the source as a delta:
-   ks profiled per channel by golden section inside zooming 16-value grids in
-   log sigma, one batched pass over the pixels per grid).
+   ks profiled per channel by golden section inside 16-value grids in log
+   sigma (two zooms, Chebyshev points, a grid around their interpolant's
+   minimum), one batched pass over the pixels per grid).
    scipy: the same algorithm with the same speed-ups (normal-equation blocks
    formed once per mu with numpy BLAS, the SH of the mirror directions
    computed once, as jaxsh's mirror table does, and the same pixel subset):

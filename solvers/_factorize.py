@@ -78,11 +78,12 @@ projection) is minimized over $(K_s$ per channel$, \\sigma)$ on the search
 subset, with $\\mu$ kept at its stage-1 value, by the nested searches of
 stage 1: once $\\sigma$ is fixed the channels decouple, so each $K_s$ is
 profiled out by `optimistix.GoldenSearch`, and $\\log\\sigma$ is searched by
-zooming grids of 16 values (the first over eq. 26's range $[10^{-3}, 2]$,
-each next one between the best value's neighbours), one batched pass over
+grids of 16 values (two zooms, the first over eq. 26's range $[10^{-3}, 2]$,
+the next between the best value's neighbours; then 16 Chebyshev points on that bracket and a last grid of
+spacing within the tolerance around their interpolant's minimum), one batched pass over
 the pixels per grid (`_refine_search`). The final solve uses all pixels; the standard errors
 of $(K_s, \\sigma)$ come from the Hessian of the profiled RSS there (by central
-differences, `_profiled_hessian`), that of $\\mu$ from the stage-1 parabola.
+differences, `_profiled_hessian`), that of $\\mu$ from the curvature of the interpolant of $\\mu$'s profile.
 
 **The source direction** is the weighted centroid of the peak's texels on
 the recovered lighting's lat-long map, refined by three mean-shift steps on
@@ -608,9 +609,9 @@ def factorize(
     - `refine`: joint refinement of $(K_s, \\sigma)$ and the lighting, with the
       lighting modelled as slow SH + the found source (needs `find_sigma`).
     - `refine_mu`: with `refine` and Fresnel, $\\mu$ is searched again on the
-      joint model (`_joint_mu_search`: 9 values of $\\log(\\mu - 1)$ within
-      0.75 of the stage-1 value, $(K_s, \\sigma)$ re-searched at each, and a
-      parabola), then the first stage, the source and the refinement are
+      joint model (`_joint_mu_search`: 9 Chebyshev points of $\\log(\\mu - 1)$ within
+      0.75 of the stage-1 value, $(K_s, \\sigma)$ re-searched at each, and their
+      interpolant's minimum), then the first stage, the source and the refinement are
       redone at the new $\\mu$, and $\\mu$'s standard error comes from that
       profile. Stage 1 models the lighting as $l \\le l^*$ SH only, and a
       bright compact source (a sun) biases its $\\mu$: on
@@ -1274,11 +1275,12 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
 
 
 def _joint_window(t1):
-    """The joint μ search's 9 values of $\\log(\\mu - 1)$: evenly spaced over $2w$ around `t1`
-    (`_MU_JOINT_HALF_WIDTH`), shifted (not shrunk) to lie inside stage 1's range. Unshifted, the middle value is
-    `t1` itself, bitwise (`factorize` then takes stage 1's blocks at `t1` from the window's batch)."""
+    """The joint μ search's 9 values of $\\log(\\mu - 1)$: the Chebyshev points (`_chebyshev_points`) of an
+    interval of width $2w$ around `t1` (`_MU_JOINT_HALF_WIDTH`), shifted (not shrunk) to lie inside stage 1's
+    range. Unshifted, the middle value is `t1` itself, bitwise (`factorize` then takes stage 1's blocks at `t1`
+    from the window's batch)."""
     lo = min(max(t1 - _MU_JOINT_HALF_WIDTH, _MU_T_RANGE[0]), _MU_T_RANGE[1] - 2 * _MU_JOINT_HALF_WIDTH)
-    ts = np.linspace(lo, lo + 2 * _MU_JOINT_HALF_WIDTH, 9)
+    ts = _chebyshev_points(lo, lo + 2 * _MU_JOINT_HALF_WIDTH)
     if lo == t1 - _MU_JOINT_HALF_WIDTH:
         ts[4] = t1
     return ts
@@ -1293,9 +1295,12 @@ _WINDOW_SLOT = np.argsort(_WINDOW_ORDER)  # the batch index of each window value
 def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column, chunk=None,
                      first=None):
     """$t = \\log(\\mu - 1)$ that minimizes the joint model's profiled RSS on the subset (its $(K_s, \\sigma)$
-    re-searched at each $\\mu$ by `_refine_search`): 9 values evenly spaced on $[t_1 - w, t_1 + w]$
-    (`_MU_JOINT_HALF_WIDTH`, within stage 1's range) around the stage-1 value $t_1$, their blocks in one batch
-    (`_mu_blocks`), then the parabola through the best and its neighbours. Stage 1 chooses $\\mu$ with the
+    re-searched at each $\\mu$ by `_refine_search`): 9 Chebyshev points on $[t_1 - w, t_1 + w]$
+    (`_joint_window`, within stage 1's range) around the stage-1 value $t_1$, their blocks in one batch
+    (`_mu_blocks`), then the minimum of their interpolant (`_interpolant_minimum`). The parabola through the best
+    of 9 evenly spaced values and its neighbours, which this replaced, was 1.2e-3 to 1.1e-2 off the profile's
+    minimum on three captures (1.2 to 2.1 standard errors of $t$), the interpolant 2.5e-7 to 5e-7
+    (docs/performance.md, "Twenty-third round"). Stage 1 chooses $\\mu$ with the
     lighting as $l \\le l^*$ SH only; a bright compact source (a sun) is far from that model, and $\\mu$ then
     absorbs the misfit (measured: $\\mu$ 1.36 for 1.6 on noise-free images, $K_s$ 40 % low, status converged).
     The joint model holds the source as a delta, so its $\\mu$ is not biased that way. Reuses the compiled
@@ -1328,16 +1333,15 @@ def _joint_mu_search(sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, 
     n = len(ts)
     if not np.any(np.isfinite(vals)):
         return t1, None, n
-    k = int(np.argmin(vals))
-    inner = (k == 0 and ts[0] > _MU_T_RANGE[0]) or (k == len(ts) - 1 and ts[-1] < _MU_T_RANGE[1])
+    best, c2 = _interpolant_minimum(ts, vals)
+    inner = c2 is None and ((best == ts[0] and ts[0] > _MU_T_RANGE[0]) or (best == ts[-1] and ts[-1] < _MU_T_RANGE[1]))
     if inner:  # the minimum at a window edge inside the range: once more, centred there (9 evaluations more)
-        ts2 = window(ts[k])
+        ts2 = window(best)
         vals2 = profile(ts2)
         n += len(ts2)
-        if np.min(vals2) <= vals[k]:
-            ts, vals = ts2, vals2
-            k = int(np.argmin(vals))
-    return (*_parabola(ts, vals, k), n)
+        if np.min(vals2) <= np.min(vals):
+            best, c2 = _interpolant_minimum(ts2, vals2)
+    return best, c2, n
 
 
 def _at_bound(t_mu, sigma) -> dict:
@@ -1352,20 +1356,6 @@ def _at_bound(t_mu, sigma) -> dict:
         sigma_b = bool(np.isfinite(ls)) and not np.log(_SIGMA_RANGE[0]) + _AT_BOUND_TOL < ls < np.log(_SIGMA_RANGE[1]) - _AT_BOUND_TOL
     return {"mu": bool(mu_b), "sigma": bool(sigma_b)}
 
-
-
-def _parabola(t, vals, k):
-    """The parabola through the grid point `k` of the evenly spaced `t` and its two neighbours: `(vertex, c2)`,
-    the vertex moved by at most one step and the second difference; `(t[k], None)` at the grid's edge, with a
-    non-finite neighbour, or where the parabola is not convex (no curvature: the standard error is then inf)."""
-    if not 0 < k < len(t) - 1 or not np.all(np.isfinite(vals[k - 1 : k + 2])):
-        return t[k], None
-    h = t[1] - t[0]
-    y0, y1, y2 = vals[k - 1 : k + 2]
-    c2 = (y0 - 2 * y1 + y2) / h**2
-    if not c2 > 0:
-        return t[k], None
-    return t[k] + float(np.clip(-(y2 - y0) / (2 * h * c2), -h, h)), c2
 
 
 def _chebyshev_points(lo: float, hi: float, n: int = 9) -> np.ndarray:
@@ -1407,7 +1397,7 @@ def _interpolant_minimum(t, vals):
 
 _MU_T_RANGE = (float(np.log(0.05)), float(np.log(2.5)))  # stage 1's range of log(mu - 1)
 _MU_JOINT_HALF_WIDTH = 0.75  # the joint search's bracket around the stage-1 log(mu - 1): 1.5 first-round steps
-# (9 values 0.19 apart: wide for stage 1's bias, 9.5 % in mu on `bench_inverse.py`'s capture; mu's standard error is
+# (wide for stage 1's bias, 9.5 % in mu on `bench_inverse.py`'s capture; mu's standard error is
 # far smaller, 8.6e-4 at mu = 1.6 on 3 x 48^2 views with 1 % noise, against a Monte Carlo spread of 7.5e-4). The
 # window is shifted, not shrunk, to stay inside `_MU_T_RANGE`, and centred again once on a minimum at its edge.
 # log(sigma)'s grids inside the joint mu search: two zooms, then the Chebyshev grid, whose interpolant's minimum is
@@ -1552,11 +1542,12 @@ class _Zoom(eqx.Module):
     c: Array  # () the centre of the next grid's bracket: `t`, or the interpolant's minimum after the Chebyshev grid
     cheb: Array  # () bool: the Chebyshev grid is done
     pm: Array  # () the minimum of its interpolant (inf before it, or where it was not inside)
+    fine: Array  # () bool: the next grid is the one around that minimum
 
 
 # After the zooms bring the bracket to this half-width in log σ (two zooms from `_SIGMA_RANGE`: 0.053), the next grid
 # is `_SIGMA_POINTS` Chebyshev points on it, and the minimum of their interpolant centres one last grid of spacing
-# within the tolerance (`_refine_search`).
+# 1/16 of the tolerance (`_refine_search`).
 _SIGMA_CHEB_WIDTH = 0.1
 
 
@@ -1618,10 +1609,12 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     inside the bracket, first all of `_SIGMA_RANGE` (eq. 26's range), then the best point's neighbours (the
     bracket shrinks 8.5× a zoom); once the bracket's half-width is within `_SIGMA_CHEB_WIDTH` (after two zooms),
     by `_SIGMA_POINTS` Chebyshev points on it, whose interpolant's minimum (`_interpolant_argmin`; the profile is
-    analytic in $t$) centres one more grid, of spacing 16/17 of the tolerance. The search stops when the spacing is
-    within `atol + rtol |t|` (four grids where the 9-fold zooms took nine) or after `max_steps` grids. Where the
-    interpolant's minimum falls on the bracket's end, or a value is not finite, the zooms go on from the best
-    point. Each grid evaluates its values in one batch (one pass over the rows for all of them, `vmap`); the loop
+    analytic in $t$) centres one more grid, of spacing 1/16 of the tolerance (a last grid of spacing near the
+    tolerance let rounding move σ by a whole spacing, 2.7e-7, between one device and four: `tests/test_scale.py`).
+    The search stops when the spacing is within `atol + rtol |t|` (four grids where the 8.5-fold zooms took eight or
+    nine) or after `max_steps` grids. Where the interpolant's minimum falls on the bracket's end, or a value is not
+    finite, the zooms go on from the best point; where the fine grid's best is at its edge, one more grid of twice
+    its width is centred there. Each grid evaluates its values in one batch (one pass over the rows for all of them, `vmap`); the loop
     holds one copy of the objective. Where no value is finite (data without signal) the search stops after
     the first grid and returns the stage-1 `ks0`, `sigma0` (clipped to the ranges) with the status `nonfinite`.
     Returns `ks (C,)`, `sigma`, the status, the values evaluated and the profiled RSS reached: the least value
@@ -1639,7 +1632,8 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
         return atol + rtol * jnp.abs(z.t)
 
     def cond(z):
-        return (z.h > tol(z)) & (z.n < max_steps) & ((z.n == 0) | jnp.isfinite(z.val))
+        # (the fine grid runs whatever its width: it is narrower than the tolerance)
+        return ((z.h > tol(z)) | z.fine) & (z.n < max_steps) & ((z.n == 0) | jnp.isfinite(z.val))
 
     xc = jnp.asarray(_cheb_tables(_SIGMA_POINTS, 2)[0], dt)
 
@@ -1652,26 +1646,29 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
         k = jnp.argmin(vals)
         better = vals[k] < z.val
         t = jnp.where(better, ts[k], z.t)
-        h = (b - a) / (_SIGMA_POINTS + 1)
-        # after the Chebyshev grid: the next grid's spacing within the tolerance, centred on the interpolant's minimum
+        # the fine grid's best at its edge: the interpolant's minimum was off; one more grid of twice its width there
+        edge = (k == 0) | (k == _SIGMA_POINTS - 1)
+        h = jnp.where(z.fine & edge, b - a, (b - a) / (_SIGMA_POINTS + 1))
+        # after the Chebyshev grid: the fine grid, spacing 1/16 of the tolerance, centred on the interpolant's minimum
         # (where it is inside the bracket and all values are finite; else a zoom on the best value, as before)
         xm, inner, pm = _interpolant_argmin(jnp.where(jnp.isfinite(vals), vals, 0.0), dt)
         ok = use_cheb & inner & jnp.all(jnp.isfinite(vals))
         tm = 0.5 * (a + b) + 0.5 * (b - a) * xm
-        h_fine = 0.5 * _SIGMA_POINTS * (atol + rtol * jnp.abs(tm))  # spacing 16/17 of the tolerance
+        h_fine = (_SIGMA_POINTS + 1) / 32 * (atol + rtol * jnp.abs(tm))
         return _Zoom(t, jnp.where(better, vals[k], z.val), jnp.where(better, ks[k], z.ks),
-                     jnp.where(ok, h_fine, h), z.n + 1, jnp.where(ok, tm, t), z.cheb | use_cheb, jnp.where(ok, pm, z.pm))
+                     jnp.where(ok, h_fine, h), z.n + 1, jnp.where(ok, tm, t), z.cheb | use_cheb, jnp.where(ok, pm, z.pm),
+                     ok)
 
     z0 = _Zoom(jnp.asarray(0.5 * (lo + hi), dt), jnp.asarray(jnp.inf, dt), jnp.zeros((c,), dt),
                jnp.asarray(0.5 * (hi - lo), dt), jnp.asarray(0), jnp.asarray(0.5 * (lo + hi), dt), jnp.asarray(False),
-               jnp.asarray(jnp.inf, dt))
+               jnp.asarray(jnp.inf, dt), jnp.asarray(False))
     z = jax.lax.while_loop(cond, body, z0)
     # no finite value: the stage-1 estimate (finite where it is)
     t_fb = jnp.clip(jnp.where(jnp.isfinite(sigma0) & (sigma0 > 0), jnp.log(jnp.abs(sigma0)), 0.5 * (lo + hi)), lo, hi)
     ks_fb = jnp.clip(jnp.where(jnp.isfinite(ks0), ks0, 0.5), 1e-6, 1.0)
     found = jnp.isfinite(z.val)
-    z = _Zoom(jnp.where(found, z.t, t_fb), z.val, jnp.where(found, z.ks, ks_fb), z.h, z.n, z.c, z.cheb, z.pm)
-    status = Status.where(jnp.isfinite(z.val), Status.where(z.h <= tol(z), Status.converged, Status.max_steps_reached),
+    z = _Zoom(jnp.where(found, z.t, t_fb), z.val, jnp.where(found, z.ks, ks_fb), z.h, z.n, z.c, z.cheb, z.pm, z.fine)
+    status = Status.where(jnp.isfinite(z.val), Status.where((z.h <= tol(z)) & ~z.fine, Status.converged, Status.max_steps_reached),
                           Status.nonfinite)
     return z.ks, jnp.exp(z.t), status, z.n * _SIGMA_POINTS, jnp.minimum(z.val, z.pm)
 
