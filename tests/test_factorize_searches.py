@@ -18,6 +18,23 @@ import solvers
 from solvers import _factorize as F
 
 
+def _capture(mu, sigma, noise, seed, model):
+    """3 views of 48^2 of a sphere rendered with `model` (a fuller BRDF than the one fitted) and `noise`."""
+    brdf = solvers.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.3, 0.3]), jnp.asarray(mu),
+                                   jnp.asarray(sigma))
+    cap = solvers.sphere_capture(brdf, size=48, n_views=3, noise=noise, seed=seed, brdf_model=model)
+    return solvers.observations(cap.gbuffers, cap.images)
+
+
+def _in_batches(f, ts, k):
+    """`f` at each value of `ts`, `k` per call (the last batch padded with its last value): `(len(ts),)`."""
+    out = []
+    for i in range(0, len(ts), k):
+        part = np.asarray(ts[i : i + k], np.float64)
+        out.append(np.asarray(f(np.concatenate([part, np.full(k - len(part), part[-1])])))[: len(part)])
+    return np.concatenate(out)
+
+
 def test_chebyshev_points_are_the_second_kind_on_the_interval():
     x = F._chebyshev_points(-1.25, 0.5)
     ref = -1.25 + 1.75 * (np.cos(np.pi * np.arange(9) / 8)[::-1] + 1) / 2
@@ -60,13 +77,7 @@ def test_interpolant_minimum_with_non_finite_values():
 
 def _profile(tab, ts):
     """The profiled relative RSS of stage 1 at each value of `ts` (9 per batch), from the rounds' own programs."""
-    out = []
-    for i in range(0, len(ts), 9):
-        part = np.asarray(ts[i : i + 9], np.float64)
-        tp = np.concatenate([part, np.full(9 - len(part), part[-1])])
-        bl = F._mu_blocks(tab, jnp.asarray(1.0 + np.exp(tp)), 6, 1e-12)
-        out.append(np.asarray(F._golden_batch(bl)[0])[: len(part)])
-    return np.concatenate(out)
+    return _in_batches(lambda tp: F._golden_batch(F._mu_blocks(tab, jnp.asarray(1.0 + np.exp(tp)), 6, 1e-12))[0], ts, 9)
 
 
 def test_stage1_mu_is_the_profile_minimum(monkeypatch):
@@ -75,10 +86,7 @@ def test_stage1_mu_is_the_profile_minimum(monkeypatch):
     searched, found by brute force: 41 values 2e-3 apart around it and a quartic fit (the profile's Taylor terms
     past the fourth are ~1e-12 relative over that span). Its curvature there, which gives the standard error of mu,
     must match the search's to 1e-4. The two 7-point zooms and parabola this search replaced were 1.2e-4 off here."""
-    brdf = solvers.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.3, 0.3]), jnp.asarray(1.2),
-                                   jnp.asarray(0.2))
-    cap = solvers.sphere_capture(brdf, size=48, n_views=3, noise=0.01, seed=1, brdf_model="cook_torrance")
-    obs = solvers.observations(cap.gbuffers, cap.images)
+    obs = _capture(1.2, 0.2, 0.01, 1, "cook_torrance")
     tabs, found = [], []
     table, minimum = F._mirror_table_jit, F._interpolant_minimum
     monkeypatch.setattr(F, "_mirror_table_jit", lambda *a: tabs.append(table(*a)) or tabs[-1])
@@ -135,10 +143,7 @@ def test_refine_search_reaches_the_profile_minimum_in_four_grids(monkeypatch):
     apart, a quartic fit), after 4 grids of 16 values (two zooms, the Chebyshev grid, the fine grid; the 8.5-fold
     zooms alone took 8 here). Stopped after 3 grids, as the joint mu search stops it, the value it returns is the
     profile's minimum to 1e-9 (the interpolant's), where the best point of three zooms was 2.5e-4 above it."""
-    brdf = solvers.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.3, 0.3]), jnp.asarray(1.6),
-                                   jnp.asarray(0.15))
-    cap = solvers.sphere_capture(brdf, size=48, n_views=3, noise=0.01, seed=2, brdf_model="cook_torrance")
-    obs = solvers.observations(cap.gbuffers, cap.images)
+    obs = _capture(1.6, 0.15, 0.01, 2, "cook_torrance")
     calls = []
     search = F._refine_search
     monkeypatch.setattr(F, "_refine_search", lambda *a: calls.append(a) or search(*a))
@@ -152,16 +157,9 @@ def test_refine_search_reaches_the_profile_minimum_in_four_grids(monkeypatch):
     sp = F._source_parts(jt, mu, d)
     profile = jax.jit(lambda ts: F._profiled_sigmas(jt, sp, ts, lmax)[0])
 
-    def at(ts):  # 16 values per batch
-        out = []
-        for i in range(0, len(ts), 16):
-            part = ts[i : i + 16]
-            out.append(np.asarray(profile(jnp.asarray(np.concatenate([part, np.full(16 - len(part), part[-1])]))))[: len(part)])
-        return np.concatenate(out)
-
     t_hat = float(np.log(float(sigma)))
     ts = t_hat + 1e-4 * np.arange(-20, 21)
-    vals = at(ts)
+    vals = _in_batches(lambda tp: profile(jnp.asarray(tp)), ts, 16)
     c = np.polyfit(ts - t_hat, vals, 4)
     t_ref = t_hat - c[3] / (2 * c[2])
     assert abs(t_hat - t_ref) <= atol + rtol * abs(t_ref)
@@ -178,13 +176,10 @@ def test_joint_mu_search_is_the_profile_minimum(monkeypatch):
     (GGX, 2 % noise): the returned t is the minimum of the profile it searched (each value: the blocks at that mu,
     (K_s, sigma) re-searched), found by brute force: 41 values 2e-3 apart and a quartic fit. The interpolant through
     the 9 Chebyshev points lands within 1e-5; the parabola through the best of 9 evenly spaced values, which it
-    replaced, was 1e-3 to 1e-2 off on the captures measured (up to 2.6 standard errors)."""
+    replaced, was 1e-3 to 1e-2 off on the captures measured (1.2 to 2.1 standard errors of t)."""
     import dataclasses
 
-    brdf = solvers.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.3, 0.3]), jnp.asarray(2.2),
-                                   jnp.asarray(0.1))
-    cap = solvers.sphere_capture(brdf, size=48, n_views=3, noise=0.02, seed=1, brdf_model="ggx")
-    obs = solvers.observations(cap.gbuffers, cap.images)
+    obs = _capture(2.2, 0.1, 0.02, 1, "ggx")
     calls = []
     search = F._joint_mu_search
     monkeypatch.setattr(F, "_joint_mu_search", lambda *a, **k: calls.append((a, search(*a, **k))) or calls[-1][1])
@@ -193,22 +188,19 @@ def test_joint_mu_search_is_the_profile_minimum(monkeypatch):
     (sub, tab, lmax, t1, ks0, d, sigma0, max_steps, rtol, atol, rcond, column), (t_hat, c2, _) = calls[0]
     assert tab is not None and c2 is not None and float(res.brdf.mu) == pytest.approx(1.0 + np.exp(t_hat), rel=1e-12)
 
-    def profile(ts):
+    def profile(tp):  # 9 values: their blocks in one batch, then (K_s, sigma) re-searched at each
+        bl = F._mu_blocks(tab, jnp.asarray(1.0 + np.exp(tp)), lmax, rcond)
         out = []
-        for i in range(0, len(ts), 9):
-            part = ts[i : i + 9]
-            bl = F._mu_blocks(tab, jnp.asarray(1.0 + np.exp(np.concatenate([part, np.full(9 - len(part), part[-1])]))),
-                              lmax, rcond)
-            for k, t in enumerate(part):
-                mu = jnp.asarray(1.0 + np.exp(t))
-                jt = F._joint_from_table(sub, tab, bl, mu, lmax, jnp.asarray(k, jnp.int32))
-                if column is not None:
-                    jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
-                out.append(float(F._refine_search(jt, mu, ks0, d, sigma0, lmax, *F._limits(max_steps, rtol, atol))[4]))
+        for k, t in enumerate(tp):
+            mu = jnp.asarray(1.0 + np.exp(t))
+            jt = F._joint_from_table(sub, tab, bl, mu, lmax, jnp.asarray(k, jnp.int32))
+            if column is not None:
+                jt = dataclasses.replace(jt, fvis=sub.fast_visibility[:, column])
+            out.append(float(F._refine_search(jt, mu, ks0, d, sigma0, lmax, *F._limits(max_steps, rtol, atol))[4]))
         return np.asarray(out)
 
     ts = t_hat + 2e-3 * np.arange(-20, 21)
-    c = np.polyfit(ts - t_hat, profile(ts), 4)
+    c = np.polyfit(ts - t_hat, _in_batches(profile, ts, 9), 4)
     t_ref = t_hat - c[3] / (2 * c[2])
     assert abs(t_hat - t_ref) < 1e-5
     assert c2 == pytest.approx(2 * c[2], rel=1e-3)
