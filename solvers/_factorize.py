@@ -1614,8 +1614,8 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     The search stops when the spacing is within `atol + rtol |t|` (four grids where the 8.5-fold zooms took eight or
     nine) or after `max_steps` grids. Where the interpolant's minimum falls on the bracket's end, or a value is not
     finite, the zooms go on from the best point; where the fine grid's best is at its edge, one more grid of twice
-    its width is centred there. Each grid evaluates its values in one batch (one pass over the rows for all of them, `vmap`); the loop
-    holds one copy of the objective. Where no value is finite (data without signal) the search stops after
+    its width is centred there. Each grid evaluates its values in one batch (one pass over the rows for all of
+    them, `vmap`); the loop holds one copy of the objective. Where no value is finite (data without signal) the search stops after
     the first grid and returns the stage-1 `ks0`, `sigma0` (clipped to the ranges) with the status `nonfinite`.
     Returns `ks (C,)`, `sigma`, the status, the values evaluated and the profiled RSS reached: the least value
     evaluated, or the interpolant's minimum where that is less (the joint μ search stops after the Chebyshev grid,
@@ -1668,7 +1668,8 @@ def _refine_search(jt, mu, ks0, d, sigma0, lmax, max_steps, rtol, atol):
     ks_fb = jnp.clip(jnp.where(jnp.isfinite(ks0), ks0, 0.5), 1e-6, 1.0)
     found = jnp.isfinite(z.val)
     z = _Zoom(jnp.where(found, z.t, t_fb), z.val, jnp.where(found, z.ks, ks_fb), z.h, z.n, z.c, z.cheb, z.pm, z.fine)
-    status = Status.where(jnp.isfinite(z.val), Status.where((z.h <= tol(z)) & ~z.fine, Status.converged, Status.max_steps_reached),
+    done = (z.h <= tol(z)) & ~z.fine  # (stopped before the fine grid: not converged)
+    status = Status.where(jnp.isfinite(z.val), Status.where(done, Status.converged, Status.max_steps_reached),
                           Status.nonfinite)
     return z.ks, jnp.exp(z.t), status, z.n * _SIGMA_POINTS, jnp.minimum(z.val, z.pm)
 
