@@ -182,10 +182,11 @@ def test_factorize_on_a_subset_returns_fitted_in_the_pixels_order(sphere, refine
 
 def test_joint_window_holds_stage_one_mu_in_its_middle_and_shares_its_batch(rng):
     """The joint mu search's first window: the 9 Chebyshev points of an interval of width 2 w around t1, t1 itself
-    (bitwise) in the middle unless the window had to be shifted into stage 1's range. Stage 1 then reads its blocks from the window's batch (t1 first,
-    `_WINDOW_ORDER`): equal to the batch of 9 copies of its mu it used before."""
+    (bitwise) in the middle unless the window had to be shifted into stage 1's range. Stage 1 then reads its blocks
+    from the window's batch (t1 first, `_WINDOW_ORDER`): equal to the batch of 9 copies of its mu it used before."""
     w, (lo, hi) = F._MU_JOINT_HALF_WIDTH, F._MU_T_RANGE
-    for t1 in (-0.8, -1.9141484640510031, -1.3770710475691386, lo + w + 1e-9):  # (the 2nd, 3rd: the interval's middle is not t1)
+    # (the 2nd, 3rd: the interval's middle is not t1)
+    for t1 in (-0.8, -1.9141484640510031, -1.3770710475691386, lo + w + 1e-9):
         ts = F._joint_window(t1)
         ref = t1 - w * np.cos(np.pi * np.arange(9) / 8)
         assert ts[4] == t1 and np.allclose(ts, ref, rtol=0, atol=1e-14)

@@ -3,7 +3,7 @@
 Stage 1's search over $t = \\log(\\mu - 1)$: a 9-point grid, then the minimum of the polynomial through 9 Chebyshev
 points on the best value's bracket (`_chebyshev_points`, `_interpolant_minimum`, on the host). The refinement's
 search over $\\log\\sigma$ (`_refine_search`, jitted): two zooms, 16 Chebyshev points, then one grid of spacing
-within the tolerance around their interpolant's minimum (`_cheb_tables`, `_interpolant_argmin`).
+1/16 of the tolerance around their interpolant's minimum (`_cheb_tables`, `_interpolant_argmin`).
 
 References: closed forms (functions whose minimum and curvature are known), NumPy's Chebyshev module, and, for the
 solvers, each profile evaluated on a fine grid around the returned value (a brute-force minimum of the same objective,
