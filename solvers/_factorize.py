@@ -120,7 +120,7 @@ from ._host_random import host_rng
 from ._factorize_dual import _check_region_arg, _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
-                                mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
+                                half_inverse_psd, mirror_table, pixel_chunks, solve_spd_small)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
@@ -215,17 +215,21 @@ class FactorizationResult(Solution):
 
 
 class _Blocks(eqx.Module):
-    """Normal-equation blocks of eq. 25 for one mu, split at the l <= 2 columns, with pinv(SS22)."""
+    """Normal-equation blocks of eq. 25 for one mu, split at the l <= 2 columns, with a factor of pinv(SS22)."""
 
     g: Gram
-    p22: Array | None  # (n-9, n-9)
-    h22: Array | None = None  # (n-9, n-9): p22 = h22^T h22 (`pinv_psd(..., half=True)`), for `_golden_ks`
+    h22: Array  # (n-9, n-9): pinv(SS22) = h22^T h22 (`half_inverse_psd`), for `_golden_ks`
+
+    @property
+    def p22(self) -> Array:
+        """pinv(SS22) `(n-9, n-9)` (formed on demand: only `_schur_rss`, the tests' reference, reads it)."""
+        return jnp.swapaxes(self.h22, -1, -2) @ self.h22
 
 
 def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float) -> _Blocks:
     g = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, mu, None, lmax,
                         chunk)
-    return _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
+    return _Blocks(g, half_inverse_psd(g.ss[9:, 9:], rcond))
 
 
 def _schur_rss(bl: _Blocks, kd, ks, filt, src=None):
@@ -271,7 +275,7 @@ def _golden_ks(bl: _Blocks, filt, rtol: float, atol: float, max_steps: int):
     $K_s = 1$ (a pure mirror) is checked as well. Returns `ks (C,)`, `rss (C,)`, `num_steps (C,)`.
 
     Each evaluation is the elimination of `_schur_rss` with the $K_s$-independent parts formed once. With
-    $P = \\mathrm{pinv}(SS_{22}) = H^TH$ (`pinv_psd(..., half=True)`), $A_{22}^{-1} = D_2^{-1}PD_2^{-1}/K_s^2$ and
+    $P = \\mathrm{pinv}(SS_{22}) = H^TH$ (`half_inverse_psd`), $A_{22}^{-1} = D_2^{-1}PD_2^{-1}/K_s^2$ and
     $A_{12} = K_s(K_d\\,DS_{12} + K_s\\,F_1SS_{12})D_2$ ($D_2$, $F_1$: the filter's diagonal on the $l > 2$ and
     $l \\le 2$ columns), the filter $D_2$ and the powers of $K_s$ cancel:
     $A_{12}A_{22}^{-1}A_{12}^T = Z^TZ$ and $A_{12}A_{22}^{-1}r_2 = Z^Te_b$ with
@@ -989,7 +993,7 @@ def _mu_blocks(tab: MirrorTable, mus, lmax, rcond) -> _Blocks:
     """The eq.-25 blocks at each Fresnel index of `mus` `(K,)` from a `MirrorTable` (`grams_at_mus`), with the
     pseudo-inverses of their l > 2 blocks: a `_Blocks` whose fields have a leading K."""
     g = grams_at_mus(tab, mus, lmax)
-    return _Blocks(g, *_pinv_each(g.ss[:, 9:, 9:], rcond))
+    return _Blocks(g, half_inverse_psd(g.ss[:, 9:, 9:], rcond))
 
 
 @jaxsh.jit
@@ -1019,7 +1023,7 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
     g, rows_obs, g_sub = out[0], (out[1] if rows else None), (out[-1] if split is not None else None)
 
     def batched(g):
-        bl = _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
+        bl = _Blocks(g, half_inverse_psd(g.ss[9:, 9:], rcond))
         return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl)
 
     return batched(g), rows_obs, (None if g_sub is None else batched(g_sub))
@@ -1074,17 +1078,6 @@ def _lighting_and_source(bl: _Blocks, ks, lmax: int, rcond, region, source: bool
 def _first(bl: _Blocks) -> _Blocks:
     """The first of batched `_Blocks` (leading K, `_mu_blocks`), or `bl` itself when it is not batched."""
     return jax.tree_util.tree_map(lambda a: a[0], bl) if bl.g.dd.ndim == 3 else bl
-
-
-def _pinv_each(a, rcond):
-    """`pinv_psd(..., half=True)` of each matrix of `a` `(K, m, m)` (through `eigh_stack`: one batched call on one
-    local device, one call per matrix on several): `(pinv (K, m, m), half (K, m, m))`."""
-    return pinv_psd(a, rcond, half=True)
-
-
-def _blocks_from_table(tab: MirrorTable, mu, lmax: int, rcond) -> _Blocks:
-    g = jax.tree_util.tree_map(lambda a: a[0], grams_at_mus(tab, mu[None], lmax))
-    return _Blocks(g, *pinv_psd(g.ss[9:, 9:], rcond, half=True))
 
 
 @jaxsh.jit

@@ -397,7 +397,7 @@ def test_golden_ks_rss_from_fixed_parts_equals_the_dense_least_squares(rng):
     b, w = rng.uniform(size=(n_px, 2)), rng.uniform(0.5, 1.0, size=n_px)
     g = jax.jit(accumulate_gram, static_argnums=(8, 9))(*(jnp.asarray(a) for a in (n, v, b, w)), None, None,
                                                         jnp.asarray(1.6), None, lmax, 1024)
-    bl = F._Blocks(g, *pinv_psd(g.ss[9:, 9:], 1e-12, half=True))
+    bl = F._Blocks(g, pinv_psd(g.ss[9:, 9:], 1e-12, half=True)[1])
     filt = jnp.asarray(np.exp(-((0.15 * jaxsh.sh_degrees(lmax)) ** 2)))
     parts = F._golden_parts(bl, filt)
     gram = np.block([[np.asarray(g.dd), np.asarray(g.ds)], [np.asarray(g.ds).T, np.asarray(g.ss)]])

@@ -102,3 +102,72 @@ def test_solve_spd_small_at_unknowns_of_very_different_scales(dt, span):
     rs[4] = 0.0
     xs = np.asarray(solve_spd_small(jnp.asarray(sing, dt), jnp.asarray(rs, dt)))
     assert np.all(np.isfinite(xs)) and xs[4] == 0.0
+
+
+def _spd(rng, m, cond, rank=None):
+    """A symmetric PSD `(m, m)` matrix with eigenvalues log-spaced over `cond` (the last `m - rank` of them 0)."""
+    q, _ = np.linalg.qr(rng.normal(size=(m, m)))
+    ev = np.logspace(0.0, -np.log10(cond), m)
+    if rank is not None:
+        ev[rank:] = 0.0
+    return (q * ev) @ q.T
+
+
+def _is_lower(h):
+    return np.all(np.triu(h, 1) == 0.0)
+
+
+@pytest.mark.parametrize("dt, rcond, tol", [(np.float64, 1e-12, 1e-9), (np.float32, 1e-6, 2e-3)])
+def test_half_inverse_psd_is_a_factor_of_the_inverse(rng, dt, rcond, tol):
+    """Well-conditioned blocks (their bound ||L^-1||_F^2 tr A within `_CHOLESKY_CONDITION` / `rcond`: 1e10 in
+    float64, 1e4 in float32 at its rcond 1e-6): H^T H is NumPy's inverse, and H is the Cholesky route's
+    triangular L^-1 (the fast path was taken), for a stack and for one matrix, under jit."""
+    from solvers._normal_equations import half_inverse_psd
+
+    conds = (10.0, 1e3, 1e4) if dt == np.float64 else (3.0, 10.0, 1e2)
+    a = np.stack([_spd(rng, 24, c) for c in conds])
+    h = np.asarray(jax.jit(half_inverse_psd, static_argnums=1)(jnp.asarray(a, dt), rcond))
+    assert h.dtype == dt and h.shape == a.shape
+    for k in range(len(conds)):
+        assert _is_lower(h[k])
+        want = np.linalg.inv(a[k])
+        got = h[k].astype(np.float64).T @ h[k].astype(np.float64)
+        assert np.max(np.abs(got - want)) <= tol * np.max(np.abs(want)), (k, np.max(np.abs(got - want)))
+    one = np.asarray(half_inverse_psd(jnp.asarray(a[1], dt), rcond))
+    assert one.shape == a[1].shape and _is_lower(one)
+    np.testing.assert_allclose(one, h[1], rtol=0, atol=float(np.finfo(dt).eps) * 1e3 * np.max(np.abs(h[1])))
+
+
+@pytest.mark.parametrize("bad", ["rank", "condition", "indefinite", "nan"])
+def test_half_inverse_psd_falls_back_to_the_pseudo_inverse(rng, bad):
+    """One member the Cholesky route must not factor sends the whole stack through `pinv_psd`: a rank-deficient
+    block (rank 20 of 24), one whose condition (1e11) is below 1/rcond but above the Cholesky bound
+    (`_CHOLESKY_CONDITION`/rcond = 1e10), an indefinite one (Cholesky's NaN) and one with a NaN entry. The
+    well-posed members still get their inverses, the singular one NumPy's `pinv` with the same cutoff, and no
+    factor is triangular (the eigen route)."""
+    from solvers._normal_equations import half_inverse_psd
+
+    a = [_spd(rng, 24, 1e3), _spd(rng, 24, 1e2)]
+    if bad == "rank":
+        a.append(_spd(rng, 24, 1e2, rank=20))
+    elif bad == "condition":
+        a.append(_spd(rng, 24, 1e11))
+    elif bad == "indefinite":
+        a.append(_spd(rng, 24, 1e2) - 0.5 * np.eye(24))
+    else:
+        a.append(_spd(rng, 24, 1e2))
+        a[-1][3, 5] = a[-1][5, 3] = np.nan
+    a = np.stack(a)
+    h = np.asarray(jax.jit(half_inverse_psd, static_argnums=1)(jnp.asarray(a), 1e-12))
+    assert not any(_is_lower(h[k]) for k in range(3))
+    for k in range(2):
+        want = np.linalg.inv(a[k])
+        assert np.max(np.abs(h[k].T @ h[k] - want)) <= 1e-9 * np.max(np.abs(want))
+    if bad == "rank":
+        want = np.linalg.pinv(a[2], rcond=1e-12, hermitian=True)
+        assert np.max(np.abs(h[2].T @ h[2] - want)) <= 1e-9 * np.max(np.abs(want))
+    elif bad == "condition":
+        want = np.linalg.inv(a[2])  # nothing dropped: 1e11 < 1 / rcond
+        assert np.max(np.abs(h[2].T @ h[2] - want)) <= 1e-4 * np.max(np.abs(want))
+    elif bad == "indefinite":
+        assert np.all(np.isfinite(h[2]))
