@@ -120,7 +120,7 @@ from ._host_random import host_rng
 from ._factorize_dual import _check_region_arg, _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
 from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
-                                half_inverse_psd, mirror_table, pixel_chunks, solve_spd_small)
+                                mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
@@ -218,7 +218,7 @@ class _Blocks(eqx.Module):
     """Normal-equation blocks of eq. 25 for one mu, split at the l <= 2 columns, with a factor of pinv(SS22)."""
 
     g: Gram
-    h22: Array  # (n-9, n-9): pinv(SS22) = h22^T h22 (`half_inverse_psd`), for `_golden_ks`
+    h22: Array  # (n-9, n-9): pinv(SS22) = h22^T h22 (`_half_pinv`), for `_golden_ks`
 
     @property
     def p22(self) -> Array:
@@ -229,7 +229,15 @@ class _Blocks(eqx.Module):
 def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float) -> _Blocks:
     g = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, mu, None, lmax,
                         chunk)
-    return _Blocks(g, half_inverse_psd(g.ss[9:, 9:], rcond))
+    return _Blocks(g, _half_pinv(g.ss[9:, 9:], rcond))
+
+
+def _half_pinv(a, rcond):
+    """The factor $H = \\Lambda_+^{-1/2}V^T$ of `pinv_psd(a, rcond)` $= H^TH$, of `a` `(m, m)` or of each of a stack
+    `(K, m, m)` (the pseudo-inverse itself is not formed: `_Blocks.p22`). A Cholesky factor instead ($H = L^{-1}$,
+    4.2 against 16.0 ms for 9 × 160² alone) did not shorten `_mu_blocks`, whose program took as long without any
+    factor (docs/performance.md, twenty-fourth round)."""
+    return pinv_psd(a, rcond, half=True)[1]
 
 
 def _schur_rss(bl: _Blocks, kd, ks, filt, src=None):
@@ -275,7 +283,7 @@ def _golden_ks(bl: _Blocks, filt, rtol: float, atol: float, max_steps: int):
     $K_s = 1$ (a pure mirror) is checked as well. Returns `ks (C,)`, `rss (C,)`, `num_steps (C,)`.
 
     Each evaluation is the elimination of `_schur_rss` with the $K_s$-independent parts formed once. With
-    $P = \\mathrm{pinv}(SS_{22}) = H^TH$ (`half_inverse_psd`), $A_{22}^{-1} = D_2^{-1}PD_2^{-1}/K_s^2$ and
+    $P = \\mathrm{pinv}(SS_{22}) = H^TH$ (`_half_pinv`), $A_{22}^{-1} = D_2^{-1}PD_2^{-1}/K_s^2$ and
     $A_{12} = K_s(K_d\\,DS_{12} + K_s\\,F_1SS_{12})D_2$ ($D_2$, $F_1$: the filter's diagonal on the $l > 2$ and
     $l \\le 2$ columns), the filter $D_2$ and the powers of $K_s$ cancel:
     $A_{12}A_{22}^{-1}A_{12}^T = Z^TZ$ and $A_{12}A_{22}^{-1}r_2 = Z^Te_b$ with
@@ -809,7 +817,7 @@ def factorize(
         else:
             if refine and find_sigma:  # the subset's blocks from the same pass (`_subset_first`)
                 perm = _subset_first(obs.n_samples, idx, chunk)
-                bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[2])
+                bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1])
             else:
                 bl_obs, _, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, False)
         _, ks, golden_steps = _golden_batch(bl_obs)
@@ -875,7 +883,7 @@ def factorize(
             blocks = (_mu_blocks(tab, mu9, lmax, rcond),) * 2
         else:
             perm = _subset_first(obs.n_samples, idx, chunk)
-            bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[2])
+            bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1])
             blocks = (bl_obs, bl_sub)
         _, ks, golden_steps = _golden_batch(blocks[0])
         res1, src = _lighting_and_source(blocks[0], ks, lmax, rcond, region_c, True)
@@ -993,7 +1001,7 @@ def _mu_blocks(tab: MirrorTable, mus, lmax, rcond) -> _Blocks:
     """The eq.-25 blocks at each Fresnel index of `mus` `(K,)` from a `MirrorTable` (`grams_at_mus`), with the
     pseudo-inverses of their l > 2 blocks: a `_Blocks` whose fields have a leading K."""
     g = grams_at_mus(tab, mus, lmax)
-    return _Blocks(g, half_inverse_psd(g.ss[:, 9:, 9:], rcond))
+    return _Blocks(g, _half_pinv(g.ss[:, 9:, 9:], rcond))
 
 
 @jaxsh.jit
@@ -1011,39 +1019,43 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
                       split: int | None = None):
     """The eq.-25 blocks at `mu` on all pixels (`accumulate_gram`, one pass), with pinv, repeated to the batch
     of 9 that `_golden_batch` was compiled for (`_mu_blocks`' layout), and with `rows` the pixels' eq.-25 rows
-    `(9 + n, N + pad)` from the same pass (else None). With `order` and `split` (`_subset_first`: the search subset
-    first, padded to `split` chunks), the pixels are taken in that order (so are the rows' columns), and the
-    subset's blocks come from the same pass (else None), batched alike: the refinement's search needs them at the
-    final mu, and a `_mu_blocks` call for that one mu took 61 ms (3 × 256², 40,000 samples).
-    Returns `(blocks, rows or None, subset blocks or None)`."""
+    `((9, N + pad), (n, N + pad))` from the same pass (else None). With `order` and `split` (`_subset_first`: the
+    search subset first, padded to `split` chunks), the pixels are taken in that order, the subset's blocks come
+    from the same pass (else None), batched alike (the refinement's search needs them at the final mu, and a
+    `_mu_blocks` call for that one mu took 61 ms at 3 × 256², 40,000 samples), and the rows are those of the
+    chunks after the subset's (`_joint_padded` takes the subset's from its table; at 3 × 256², the pass alone took
+    216-219 ms so, 239-245 ms with every chunk's rows, 157-166 ms without rows). Returns `(blocks, rows or None, subset blocks or None)`."""
     o = obs if order is None else _permuted(obs, order)
     out = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility,
-                          mu, None, lmax, chunk, rows, split)
+                          mu, None, lmax, chunk, rows, split, split if rows and split is not None else 0)
     out = out if isinstance(out, tuple) else (out,)
     g, rows_obs, g_sub = out[0], (out[1] if rows else None), (out[-1] if split is not None else None)
 
     def batched(g):
-        bl = _Blocks(g, half_inverse_psd(g.ss[9:, 9:], rcond))
+        bl = _Blocks(g, _half_pinv(g.ss[9:, 9:], rcond))
         return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl)
 
     return batched(g), rows_obs, (None if g_sub is None else batched(g_sub))
 
 
 def _subset_first(n: int, idx: np.ndarray, chunk: int):
-    """The pixel order of `_all_pixel_blocks` that puts the search subset first: `(order, pos, split)`.
+    """The pixel order of `_all_pixel_blocks` that puts the search subset first, and that of the refinement's
+    `_Joint` on all pixels: `(order, split, joint, pos)`.
 
     `order` `(split · chunk + N - len(idx),)`: the subset's indices `idx`, then the index `n` (a weight-0 pixel,
-    `_permuted`) up to `split` whole chunks, then the other pixels in their order; `pos` `(n,)`: where each pixel
-    went (`order[pos] = arange(n)`), both as device arrays; `split` the subset's chunks."""
+    `_permuted`) up to `split` whole chunks, then the other pixels in their order; `split` the subset's chunks;
+    `joint` `(N,)`: `order` without that filler (the subset, whose rows come from its table, then the other
+    pixels, whose rows come from the pass: `_joint_padded`); `pos` `(n,)`: where each pixel is in `joint`
+    (`joint[pos] = arange(n)`). The arrays are device arrays."""
     split = -(-len(idx) // chunk)
     others = np.ones(n, bool)
     others[idx] = False
     rest = np.flatnonzero(others)
     order = np.concatenate([idx, np.full(split * chunk - len(idx), n), rest]).astype(np.int32)
-    real = order < n
+    joint = np.concatenate([idx, rest]).astype(np.int32)
     pos = np.empty(n, np.int32)
-    pos[order[real]] = np.flatnonzero(real)
-    return jax.device_put(order), jax.device_put(pos), split
+    pos[joint] = np.arange(n, dtype=np.int32)
+    return jax.device_put(order), split, jax.device_put(joint), jax.device_put(pos)
 
 
 def _permuted(o: Observations, order) -> Observations:
@@ -1100,7 +1112,10 @@ class _Joint(eqx.Module):
     # for its two evaluations). `f` (N,) or None: a factor of every specular row's pixel, applied to the vectors
     # they multiply (`_rows_dot`, `_coef_rows`): on the search subset the specular rows are the `MirrorTable`'s
     # harmonics `ys`, shared by every mu, and `f` is mu's Fresnel factor times the visibility (a copy of the rows
-    # per mu was 57 MB written, 19-25 ms, eleven times in a call).
+    # per mu was 57 MB written, 19-25 ms, eleven times in a call). `rows_d2`, `rows_s2` `(9, N2)`, `(n, N2)` or
+    # None: the rows of a second segment of pixels, without a factor, after the first segment's `N1` columns (the
+    # per-pixel fields span both, `N = N1 + N2`): on all pixels, the search subset's rows come from its table
+    # (`_joint_padded`), and only the other pixels' from the all-pixel pass.
     rows_d: Array
     rows_s: Array
     f: Array | None
@@ -1109,32 +1124,55 @@ class _Joint(eqx.Module):
     normals: Array
     views: Array
     fvis: Array | None  # (N,) visibility of the found source (a column of `fast_visibility`), or None
+    rows_d2: Array | None = None
+    rows_s2: Array | None = None
 
     @property
     def rows(self) -> Array:
         """The rows of eq. 25 `(9 + n, N)`, stacked and with `f` applied (a new array: for checks, not for the search)."""
-        return jnp.concatenate([self.rows_d, self.rows_s if self.f is None else self.rows_s * self.f[None, :]], 0)
+        first = jnp.concatenate([self.rows_d, self.rows_s if self.f is None else self.rows_s * self.f[None, :]], 0)
+        if self.rows_d2 is None:
+            return first
+        return jnp.concatenate([first, jnp.concatenate([self.rows_d2, self.rows_s2], 0)], 1)
+
+
+def _segments(jt: _Joint, x):
+    """`x` `(..., N)` cut at the first segment's end: `(x1, x2)`, `x2` None without a second segment."""
+    if jt.rows_d2 is None:
+        return x, None
+    n1 = jt.rows_d.shape[1]
+    return x[..., :n1], x[..., n1:]
 
 
 def _rows_dot(jt: _Joint, x):
     """`jt.rows @ x` for `x` `(N,)`, without forming the rows: `(9 + n,)`."""
-    return jnp.concatenate([jt.rows_d @ x, jt.rows_s @ (x if jt.f is None else jt.f * x)])
+    x1, x2 = _segments(jt, x)
+    out = jnp.concatenate([jt.rows_d @ x1, jt.rows_s @ (x1 if jt.f is None else jt.f * x1)])
+    return out if x2 is None else out + jnp.concatenate([jt.rows_d2 @ x2, jt.rows_s2 @ x2])
 
 
 def _rows_dot_many(jt: _Joint, x):
     """`jt.rows @ x[t]` for each row of `x` `(T, N)`: `(T, 9 + n)`, as two `dot_general`s of the rows with `x`, the
-    pixels contracted, rows first. XLA:CPU runs the product with `x` first (what `vmap` of a matrix-vector product,
-    or `x @ rows.T`, or `rows @ x.T` became here) 2-3× slower: 16 vectors against 178 × 40,000 rows, 11.7-13.3 ms
-    against 4.8-5.4 ms (measured)."""
-    xs = x if jt.f is None else x * jt.f[None, :]
+    pixels contracted, rows first (per segment). XLA:CPU runs the product with `x` first (what `vmap` of a
+    matrix-vector product, or `x @ rows.T`, or `rows @ x.T` became here) 2-3× slower: 16 vectors against
+    178 × 40,000 rows, 11.7-13.3 ms against 4.8-5.4 ms (measured)."""
+    x1, x2 = _segments(jt, x)
+    xs = x1 if jt.f is None else x1 * jt.f[None, :]
     dims = (((1,), (1,)), ((), ()))
-    return jnp.concatenate([jax.lax.dot_general(jt.rows_d, x, dims), jax.lax.dot_general(jt.rows_s, xs, dims)], 0).T
+    out = jnp.concatenate([jax.lax.dot_general(jt.rows_d, x1, dims), jax.lax.dot_general(jt.rows_s, xs, dims)], 0)
+    if x2 is not None:
+        out = out + jnp.concatenate([jax.lax.dot_general(jt.rows_d2, x2, dims),
+                                     jax.lax.dot_general(jt.rows_s2, x2, dims)], 0)
+    return out.T
 
 
 def _coef_rows(jt: _Joint, coef):
     """`coef @ jt.rows` for `coef` `(C, 9 + n)`, without forming the rows: `(C, N)`."""
     spec = coef[:, 9:] @ jt.rows_s
-    return coef[:, :9] @ jt.rows_d + (spec if jt.f is None else spec * jt.f[None, :])
+    out = coef[:, :9] @ jt.rows_d + (spec if jt.f is None else spec * jt.f[None, :])
+    if jt.rows_d2 is None:
+        return out
+    return jnp.concatenate([out, coef[:, :9] @ jt.rows_d2 + coef[:, 9:] @ jt.rows_s2], 1)
 
 
 def _joint(o: Observations, bl, mu, lmax, chunk, rcond, column) -> _Joint:
@@ -1260,11 +1298,11 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     if sub is obs:
         jt = jt_sub
     elif rows_obs is not None and bl_obs is not None:
-        jt = _joint_padded(obs, bl_obs, rows_obs, column, None if perm is None else perm[0])
+        jt = _joint_padded(obs, bl_obs, rows_obs, column, perm[2], jt_sub)
     else:
         jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
         perm = None
-    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples, None if perm is None else perm[1])
+    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples, None if perm is None else perm[3])
 
 
 def _joint_window(t1):
@@ -1447,16 +1485,18 @@ def _table_parts(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k):
     return _first(bl), tab.d[:npx].T, f
 
 
-def _joint_padded(o: Observations, bl, rows, column, order=None) -> _Joint:
-    """`_Joint` of all pixels from the rows `_all_pixel_blocks` made, `((9, N + pad), (n, N + pad))`: the pixels are padded to the
-    rows' width with weight 0 (up normals and views, zero data), which adds nothing to any sum; with `order`, taken
-    in that order first (`_subset_first`, the rows' own).
+def _joint_padded(o: Observations, bl, rows, column, joint, first: _Joint) -> _Joint:
+    """`_Joint` of all pixels in two segments: the search subset's rows as `first` holds them (its `MirrorTable`'s,
+    `_joint_from_table`), then the other pixels' rows `((9, N2 + pad), (n, N2 + pad))` from the all-pixel pass
+    (`_all_pixel_blocks`, rows after the subset's chunks). The pixels are taken in the order `joint`
+    (`_subset_first`) and padded to the rows' width with weight 0 (up normals and views, zero data), which adds
+    nothing to any sum.
 
     The rows go into the `_Joint` as they are, outside any program (an input array returned by a jitted
     function comes back as a copy: 182 MB at 3 × 256², 0.06-0.2 s measured)."""
     rows_d, rows_s = rows
-    b1, w, b, n, v, fvis = _pad_joint(o, bl, rows_d.shape[1], column, order)
-    return _Joint(b1, rows_d, rows_s, None, w, b, n, v, fvis)
+    b1, w, b, n, v, fvis = _pad_joint(o, bl, first.rows_d.shape[1] + rows_d.shape[1], column, joint)
+    return _Joint(b1, first.rows_d, first.rows_s, first.f, w, b, n, v, fvis, rows_d, rows_s)
 
 
 @jaxsh.jit

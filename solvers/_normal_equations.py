@@ -14,8 +14,8 @@ problem of the solvers goes through here:
 - `channel_system`, `eig_solve`: the per-channel normal equations
   $A_c = K_{d,c}\\,d + K_{s,c}\\,s$ and their eigen-solve with singular values,
   rank, standard errors and the null space flagged (`inverse_lighting`).
-- `pinv_psd`, `half_inverse_psd`: the eigen pseudo-inverse of a PSD block (the $l > 2$ block
-  of the factorization's Schur complement), and a factor of it by Cholesky where that is safe.
+- `pinv_psd`: the eigen pseudo-inverse of a PSD block (the $l > 2$ block
+  of the factorization's Schur complement).
 - `solve_spd_small`, `inverse_spd_small`: Gaussian elimination of
   small SPD systems in plain XLA ops (a rolled pivot loop).
 - `solve_sym2`, `solve_sym2_min_norm`, `nonneg_sym2`, `inverse_sym2_diag`, `solve_grouped_shared`,
@@ -33,7 +33,7 @@ and OpenBLAS threads thrashed against XLA's (hence `blas_single_thread`
 around every solver). So the functions called inside searches
 (`solve_spd_small`, `solve_sym2`, `solve_grouped_shared`, `solve_grouped_shared_nonneg`) are plain
 elementwise/matmul arithmetic; the eigendecompositions (`eig_solve`,
-`pinv_psd`, `half_inverse_psd`, `covariance_from_jacobian`) run once per solve, outside the
+`pinv_psd`, `covariance_from_jacobian`) run once per solve, outside the
 iterative loops.
 """
 
@@ -110,7 +110,7 @@ def pixel_chunks(n, v, chunk: int, *fields):
 
 
 def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int, rows: bool = False,
-                    split: int | None = None):
+                    split: int | None = None, rows_from: int = 0):
     """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding).
 
     With `rows`, also return the design rows of all pixels, diffuse and specular, pixels last:
@@ -118,7 +118,9 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
     the padding's +z pixels, not 0: their weight 0 keeps them out of every sum, and callers drop them after a
     product; a slice to N would copy the whole array again), from the same pass (`factorize`'s refinement on all pixels
     reads them). With `split` (a number of chunks, static), also the blocks of the first `split · chunk` pixels
-    alone, from the same pass (`factorize`: its search subset put first). Returns `Gram`, then `rows` with `rows`,
+    alone, from the same pass (`factorize`: its search subset put first). `rows_from` (static): the rows of the
+    chunks from this one on only, `((9, N + pad - rows_from · chunk), ...)` (`factorize` takes its subset's rows
+    from the subset's `MirrorTable`: 31 % less to write at 3 × 256²). Returns `Gram`, then `rows` with `rows`,
     then the first pixels' `Gram` with `split`: a tuple when there is more than the `Gram`."""
     npx = n.shape[0]
     pad = (-npx) % chunk
@@ -130,6 +132,8 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
 
     if split is not None and not 0 < split <= n_p.shape[0]:
         raise ValueError(f"`split` must be in [1, {n_p.shape[0]}] (chunks of {chunk} pixels), got {split}")
+    if not 0 <= rows_from < n_p.shape[0]:
+        raise ValueError(f"`rows_from` must be in [0, {n_p.shape[0] - 1}] (chunks of {chunk} pixels), got {rows_from}")
 
     def step(carry, xs):
         acc, count, buf, first, i = carry
@@ -141,8 +145,12 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
         acc = acc + jax.lax.dot_general(r * ww[None, :], r, (((1,), (1,)), ((), ())))
         count = count + jnp.sum((ww > 0).astype(dt))
         if rows:  # written in place into the (9, N + pad), (nc, N + pad) carry (stacked scan outputs and a transpose: 2x slower)
-            at = (jnp.zeros_like(i), i * chunk)
-            buf = (jax.lax.dynamic_update_slice(buf[0], d, at), jax.lax.dynamic_update_slice(buf[1], s, at))
+            # chunks before `rows_from` write nothing (a `lax.cond`, which XLA runs in place: 23-26 ms less than all
+            # rows at 3 x 256^2, 10 of 32 chunks skipped; writing them into the first slot for the next chunk to
+            # overwrite saved 11 ms)
+            at = (jnp.zeros_like(i), (i - rows_from) * chunk)
+            write = lambda bf: (jax.lax.dynamic_update_slice(bf[0], d, at), jax.lax.dynamic_update_slice(bf[1], s, at))  # noqa: E731
+            buf = write(buf) if rows_from == 0 else jax.lax.cond(i >= rows_from, write, lambda bf: bf, buf)
         if split is not None:  # the sums after the first `split` chunks
             first = jax.tree_util.tree_map(lambda a, f: jnp.where(i + 1 == split, a, f), (acc, count), first)
         return (acc, count, buf, first, i + 1), None
@@ -153,7 +161,8 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
                     count)
 
     zero = (jnp.zeros((k, k), dt), jnp.zeros((), dt))
-    buf = (jnp.zeros((9, npx + pad), dt), jnp.zeros((nc, npx + pad), dt)) if rows else None
+    width = npx + pad - rows_from * chunk
+    buf = (jnp.zeros((9, width), dt), jnp.zeros((nc, width), dt)) if rows else None
     init = (*zero, buf, None if split is None else zero, jnp.zeros((), jnp.int32))
     (acc, count, buf, first, _), _ = jax.lax.scan(step, init, (n_p, v_p, b_p, w_p, t_p, r_p))
     out = (blocks(acc, count),) + ((buf,) if rows else ()) + (() if split is None else (blocks(*first),))
@@ -359,38 +368,6 @@ def pinv_psd(a, rcond, half: bool = False):
     if not half:
         return p
     return p, jnp.sqrt(inv)[..., :, None] * jnp.swapaxes(evecs, -1, -2)
-
-
-_CHOLESKY_CONDITION = 1e-2  # `half_inverse_psd` factors by Cholesky up to a condition bound of this / rcond
-
-
-def half_inverse_psd(a, rcond):
-    """A factor $H$ of the pseudo-inverse of a symmetric PSD `a` `(m, m)` or of each of a stack `(K, m, m)`,
-    $H^TH = \\mathrm{pinv}(A)$: $H = L^{-1}$ from the Cholesky factor $A = LL^T$ where that is safe for every
-    matrix of the stack, else `pinv_psd`'s $\\Lambda_+^{-1/2}V^T$ (eigenvalues below `rcond`·max dropped).
-
-    Safe means: every factor is finite and $\\lVert L^{-1}\\rVert_F^2\\,\\mathrm{tr}A \\le$ `_CHOLESKY_CONDITION` /
-    `rcond`. Since $\\lVert L^{-1}\\rVert_F^2 \\ge 1/\\lambda_{min}$ and $\\mathrm{tr}A \\ge \\lambda_{max}$, the condition
-    number is then below that bound, `pinv_psd` would drop no eigenvalue, and both are factors of the inverse:
-    two factors differ by an orthogonal matrix on the left, which every use ($H^TH$, $(Hx)^T(Hy)$) cancels.
-    The choice is one `lax.cond` for the whole stack (both branches compiled, one run). One Cholesky and one
-    triangular solve took 4.2 ms for `factorize`'s 9 × 160² blocks against 16.0 ms for `eigh` and the
-    pseudo-inverse; the inverses agreed to 2e-12 (condition numbers up to 2·10⁵), each within 6e-12 of
-    NumPy's `inv`. On several local CPU devices (not `batched_lapack_safe`) it is `pinv_psd`'s factor, one `eigh`
-    per matrix: with the Cholesky route and its `lax.cond`, `factorize` on 4 forced host devices hung in the
-    third call of its μ rounds' program (`tests/test_scale.py`), as a batched `eigh` did there."""
-    if not batched_lapack_safe():
-        return pinv_psd(a, rcond, half=True)[1]
-    stack = jnp.ndim(a) == 3
-    a3 = a if stack else a[None]
-    m = a3.shape[-1]
-    low = jnp.linalg.cholesky(a3)
-    eye = jnp.broadcast_to(jnp.eye(m, dtype=a3.dtype), a3.shape)
-    h = jax.lax.linalg.triangular_solve(low, eye, left_side=True, lower=True)
-    trace = jnp.trace(a3, axis1=-2, axis2=-1)
-    safe = jnp.all(jnp.isfinite(h)) & jnp.all(jnp.sum(h * h, (-2, -1)) * trace <= _CHOLESKY_CONDITION / rcond)
-    h = jax.lax.cond(safe, lambda: h, lambda: pinv_psd(a3, rcond, half=True)[1])
-    return h if stack else h[0]
 
 
 def covariance_from_jacobian(J, rss, nobs, n_par):

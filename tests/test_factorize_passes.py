@@ -64,20 +64,36 @@ def test_accumulate_gram_stacked_product_and_split_equal_numpy_sums(rng, transfe
     for bad in (0, -1, 7):  # 2900 pixels: 6 chunks of 512
         with pytest.raises(ValueError, match="split"):
             run(o.normals, o.views, o.values, o.weights, None, None, mu, None, lmax, chunk, False, bad)
+    # the rows of the chunks from `rows_from` on only (skipped chunks write nothing), the sums unchanged
+    run_from = jax.jit(accumulate_gram, static_argnums=(8, 9, 10, 11, 12))
+    g2, (rows_d2, rows_s2), first2 = run_from(o.normals, o.views, o.values, o.weights, o.transfer,
+                                              o.reflected_visibility, mu, None, lmax, chunk, True, split, split)
+    assert rows_d2.shape == (9, 2900 + pad - split * chunk) and rows_s2.shape[1] == rows_d2.shape[1]
+    np.testing.assert_array_equal(np.asarray(rows_d2), np.asarray(rows_d)[:, split * chunk:])
+    np.testing.assert_array_equal(np.asarray(rows_s2), np.asarray(rows_s)[:, split * chunk:])
+    for field in ("ss", "sb", "count"):
+        np.testing.assert_array_equal(np.asarray(getattr(g2, field)), np.asarray(getattr(g, field)))
+        np.testing.assert_array_equal(np.asarray(getattr(first2, field)), np.asarray(getattr(first, field)))
+    for bad in (-1, 6):
+        with pytest.raises(ValueError, match="rows_from"):
+            run_from(o.normals, o.views, o.values, o.weights, None, None, mu, None, lmax, chunk, True, None, bad)
 
 
 def test_subset_first_order_puts_the_subset_in_whole_chunks_first():
     n, chunk = 23, 4
     idx = np.array([2, 3, 5, 11, 17, 22])
-    order, pos, split = F._subset_first(n, idx, chunk)
-    order, pos = np.asarray(order), np.asarray(pos)
+    order, split, joint, pos = F._subset_first(n, idx, chunk)
+    order, joint, pos = np.asarray(order), np.asarray(joint), np.asarray(pos)
+    rest = np.setdiff1d(np.arange(n), idx)
     assert split == 2 and order.shape == (2 * 4 + n - 6,)
     np.testing.assert_array_equal(order[:6], idx)
     np.testing.assert_array_equal(order[6:8], [n, n])  # the weight-0 pixel fills the subset's last chunk
-    np.testing.assert_array_equal(order[8:], np.setdiff1d(np.arange(n), idx))
-    np.testing.assert_array_equal(order[pos], np.arange(n))
+    np.testing.assert_array_equal(order[8:], rest)
+    # the refinement's order: the subset (rows from its table), then the pixels of the chunks after it
+    np.testing.assert_array_equal(joint, np.concatenate([idx, rest]))
+    np.testing.assert_array_equal(joint[pos], np.arange(n))
     # a subset of whole chunks needs no filler
-    order2, _, split2 = F._subset_first(n, idx[:4], chunk)
+    order2, split2, _, _ = F._subset_first(n, idx[:4], chunk)
     assert split2 == 1 and n not in np.asarray(order2)
 
 
@@ -98,10 +114,10 @@ def test_pad_joint_keeps_every_field_with_its_pixel(rng):
     o = solvers.Observations(o.normals, o.views, o.values, o.weights, o.transfer, jnp.asarray(rng.uniform(size=(300, 2))),
                              o.reflected_visibility, None, o.view_index, o.pixel_index, o.image_shapes)
     idx = np.sort(rng.choice(300, 70, replace=False))
-    order, pos, split = F._subset_first(300, idx, 64)
-    width = -(-order.shape[0] // 64) * 64
+    _, _, joint, pos = F._subset_first(300, idx, 64)
+    width = 70 + 256  # the subset's columns, then the other 230 pixels' chunks
     bl9 = F._all_pixel_blocks(o, jnp.asarray(1.5), 4, 64, 1e-12, False)[0]
-    bl, w, b, n, v, fvis = F._pad_joint(o, bl9, width, 1, order)
+    bl, w, b, n, v, fvis = F._pad_joint(o, bl9, width, 1, joint)
     p = np.asarray(pos)
     for got, want in ((w, o.weights), (b, o.values), (n, o.normals), (v, o.views), (fvis, o.fast_visibility[:, 1])):
         assert got.shape[0] == width
@@ -118,7 +134,7 @@ def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng):
     idx = np.sort(rng.choice(5000, 1800, replace=False))
     sub = o.subset(idx)
     mu, lmax, chunk = jnp.asarray(1.45), 6, 512
-    order, pos, split = F._subset_first(o.n_samples, idx, chunk)
+    order, split, joint, pos = F._subset_first(o.n_samples, idx, chunk)
     bl, rows, bl_sub = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split)
     via_table = F._mu_blocks(F._mirror_table_jit(sub, lmax), jnp.full((9,), mu), lmax, 1e-12)
     plain, _, none = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, False)
@@ -128,10 +144,12 @@ def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng):
             x, r = np.asarray(getattr(got.g, field)), np.asarray(getattr(want.g, field))
             assert x.shape == r.shape and x.shape[0] == 9, field  # batched like a round of the mu search
             assert np.max(np.abs(x - r)) <= 1e-12 * max(np.max(np.abs(r)), 1.0), field
-    # the rows' columns follow `order`: column pos[i] is pixel i
+    # the rows are those of the pixels after the subset's chunks, in `order`: the other pixels in their order
     _, (d, s) = _numpy_blocks(o, mu, lmax)
-    np.testing.assert_allclose(np.asarray(rows[1])[:, np.asarray(pos)], s, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(np.asarray(rows[0])[:, np.asarray(pos)], d, rtol=0, atol=1e-13)
+    rest = np.setdiff1d(np.arange(5000), idx)
+    assert rows[0].shape[1] == rows[1].shape[1] == -(-rest.size // chunk) * chunk
+    np.testing.assert_allclose(np.asarray(rows[1])[:, : rest.size], s[:, rest], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(rows[0])[:, : rest.size], d[:, rest], rtol=0, atol=1e-13)
 
 
 def test_rows_products_with_and_without_the_fresnel_factor(rng):
@@ -153,6 +171,36 @@ def test_rows_products_with_and_without_the_fresnel_factor(rng):
         np.testing.assert_allclose(np.asarray(jax.jit(F._coef_rows)(jt, coef)), np.asarray(coef) @ rows, rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="specular rows"):
         F._joint_from_table(o, tab, direct.bl, mu, lmax - 1, F._K0())
+
+
+def test_two_segment_joint_equals_the_rows_of_all_pixels(rng):
+    """The refinement's `_Joint` on all pixels: the subset's rows from its `MirrorTable` (with the Fresnel factor
+    `f`), then the other pixels' rows from the all-pixel pass. Its rows, in the `joint` order, are `eq25_rows` of
+    every pixel (NumPy reference: the rows formed in one shot), its padding weighs nothing, and `_rows_dot`,
+    `_rows_dot_many`, `_coef_rows` equal products with the formed rows."""
+    o = _observations(rng, 3000, rvis=True)
+    idx = np.sort(rng.choice(3000, 1100, replace=False))
+    sub = o.subset(idx)
+    mu, lmax, chunk = jnp.asarray(1.45), 5, 512
+    order, split, joint, pos = F._subset_first(o.n_samples, idx, chunk)
+    bl, rows, bl_sub = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split)
+    first = F._joint_from_table(sub, F._mirror_table_jit(sub, lmax), bl_sub, mu, lmax, F._K0())
+    jt = F._joint_padded(o, bl, rows, None, joint, first)
+    assert jt.rows_s is first.rows_s and jt.rows_s2 is rows[1]  # shared, not copied
+    _, (d, s) = _numpy_blocks(o, mu, lmax)
+    full = np.asarray(jt.rows)
+    n_all = full.shape[1]
+    assert n_all == 1100 + rows[0].shape[1] and jt.w.shape == (n_all,)
+    p = np.asarray(pos)
+    np.testing.assert_allclose(full[:, p], np.concatenate([d, s]), rtol=0, atol=1e-12)
+    pad = np.setdiff1d(np.arange(n_all), p)
+    assert pad.size == n_all - 3000 and np.all(np.asarray(jt.w)[pad] == 0)
+    np.testing.assert_array_equal(np.asarray(jt.b)[p], np.asarray(o.values))
+    x = jnp.asarray(rng.normal(size=(3, n_all)))
+    coef = jnp.asarray(rng.normal(size=(2, 9 + (lmax + 1) ** 2)))
+    np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot_many)(jt, x)), np.asarray(x) @ full.T, rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot)(jt, x[1])), full @ np.asarray(x[1]), rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(np.asarray(jax.jit(F._coef_rows)(jt, coef)), np.asarray(coef) @ full, rtol=1e-12, atol=1e-11)
 
 
 @pytest.fixture(scope="module")
