@@ -236,7 +236,7 @@ def _half_pinv(a, rcond):
     """The factor $H = \\Lambda_+^{-1/2}V^T$ of `pinv_psd(a, rcond)` $= H^TH$, of `a` `(m, m)` or of each of a stack
     `(K, m, m)` (the pseudo-inverse itself is not formed: `_Blocks.p22`). A Cholesky factor instead ($H = L^{-1}$,
     4.2 against 16.0 ms for 9 × 160² alone) did not shorten `_mu_blocks`, whose program took as long without any
-    factor (docs/performance.md, twenty-fourth round)."""
+    factor (docs/performance.md, twenty-first and twenty-fourth rounds)."""
     return pinv_psd(a, rcond, half=True)[1]
 
 
@@ -790,8 +790,8 @@ def factorize(
     else:
         mu, its1, best = None, 0, None
     dual = None
-    rows_obs = None  # the eq.-25 rows of all pixels at the stage-1 mu (direct path with a subset), for the refinement
-    perm = None  # the order of those rows' pixels (`_subset_first`), or None: as in `obs`
+    rows_obs = None  # the eq.-25 rows at the final mu of the pixels outside the search subset, for the refinement
+    perm = None  # the orders of the all-pixel pass and of the refinement (`_subset_first`), with those rows
     win = None  # the joint mu search's first window's blocks when stage 1 takes its blocks from them
     blocks = (None, None)  # the eq.-25 blocks at the stage-1 mu on all pixels and on the subset, for the refinement
     if lighting_method == "dual":
@@ -1284,8 +1284,9 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
             rows_obs=None, perm=None):
     """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here);
     `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None; `rows_obs`: the
-    eq.-25 rows of `obs` at `mu` (`_all_pixel_blocks`), or None (formed here); `perm`: the `_subset_first` order of
-    their pixels, or None (the order of `obs`)."""
+    eq.-25 rows at `mu` of the pixels outside the subset (`_all_pixel_blocks` with the subset first), or None (all
+    rows formed here); `perm`: `_subset_first`'s orders, given with `rows_obs` (the refinement on all pixels then
+    takes the subset's rows from `tab`: `_joint_padded`)."""
     bl_obs, bl_sub = blocks
     if tab is not None and bl_sub is not None:
         jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax, _K0())
