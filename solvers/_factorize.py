@@ -1024,7 +1024,8 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
     from the same pass (else None), batched alike (the refinement's search needs them at the final mu, and a
     `_mu_blocks` call for that one mu took 61 ms at 3 × 256², 40,000 samples), and the rows are those of the
     chunks after the subset's (`_joint_padded` takes the subset's from its table; at 3 × 256², the pass alone took
-    216-219 ms so, 239-245 ms with every chunk's rows, 157-166 ms without rows). Returns `(blocks, rows or None, subset blocks or None)`."""
+    216-219 ms so, 239-245 ms with every chunk's rows, 157-166 ms without rows).
+    Returns `(blocks, rows or None, subset blocks or None)`."""
     o = obs if order is None else _permuted(obs, order)
     out = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility,
                           mu, None, lmax, chunk, rows, split, split if rows and split is not None else 0)

@@ -149,7 +149,10 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
             # rows at 3 x 256^2, 10 of 32 chunks skipped; writing them into the first slot for the next chunk to
             # overwrite saved 11 ms)
             at = (jnp.zeros_like(i), (i - rows_from) * chunk)
-            write = lambda bf: (jax.lax.dynamic_update_slice(bf[0], d, at), jax.lax.dynamic_update_slice(bf[1], s, at))  # noqa: E731
+
+            def write(bf):
+                return jax.lax.dynamic_update_slice(bf[0], d, at), jax.lax.dynamic_update_slice(bf[1], s, at)
+
             buf = write(buf) if rows_from == 0 else jax.lax.cond(i >= rows_from, write, lambda bf: bf, buf)
         if split is not None:  # the sums after the first `split` chunks
             first = jax.tree_util.tree_map(lambda a, f: jnp.where(i + 1 == split, a, f), (acc, count), first)

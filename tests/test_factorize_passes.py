@@ -198,9 +198,10 @@ def test_two_segment_joint_equals_the_rows_of_all_pixels(rng):
     np.testing.assert_array_equal(np.asarray(jt.b)[p], np.asarray(o.values))
     x = jnp.asarray(rng.normal(size=(3, n_all)))
     coef = jnp.asarray(rng.normal(size=(2, 9 + (lmax + 1) ** 2)))
-    np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot_many)(jt, x)), np.asarray(x) @ full.T, rtol=1e-12, atol=1e-11)
-    np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot)(jt, x[1])), full @ np.asarray(x[1]), rtol=1e-12, atol=1e-11)
-    np.testing.assert_allclose(np.asarray(jax.jit(F._coef_rows)(jt, coef)), np.asarray(coef) @ full, rtol=1e-12, atol=1e-11)
+    tols = {"rtol": 1e-12, "atol": 1e-11}
+    np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot_many)(jt, x)), np.asarray(x) @ full.T, **tols)
+    np.testing.assert_allclose(np.asarray(jax.jit(F._rows_dot)(jt, x[1])), full @ np.asarray(x[1]), **tols)
+    np.testing.assert_allclose(np.asarray(jax.jit(F._coef_rows)(jt, coef)), np.asarray(coef) @ full, **tols)
 
 
 @pytest.fixture(scope="module")
