@@ -126,16 +126,27 @@ def test_pad_joint_keeps_every_field_with_its_pixel(rng):
     assert others.size == width - 300 and np.all(np.asarray(w)[others] == 0)
 
 
+def _subset_of(rng, n_px, n_sub):
+    """Observations of `n_px` pixels (some seen from behind, some of weight 0), a sorted search subset of `n_sub`
+    of them, and that subset: `(o, idx, sub)`."""
+    o = _observations(rng, n_px, rvis=True)
+    idx = np.sort(rng.choice(n_px, n_sub, replace=False))
+    return o, idx, o.subset(idx)
+
+
+def _pass_with_subset_first(o, idx, mu, lmax, chunk):
+    """The all-pixel pass with the subset first (`_subset_first`, rows after the subset's chunks):
+    `(blocks, rows, subset blocks, joint, pos)`."""
+    order, split, joint, pos = F._subset_first(o.n_samples, idx, chunk)
+    return (*F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split), joint, pos)
+
+
 def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng):
     """The refinement's blocks on the search subset at the final mu come from the all-pixel pass (the subset's
     pixels first); they used to come from the subset's `MirrorTable` (`_mu_blocks`): equal to rounding, and
     the all-pixel blocks equal a pass in the original order."""
-    o = _observations(rng, 5000, rvis=True)
-    idx = np.sort(rng.choice(5000, 1800, replace=False))
-    sub = o.subset(idx)
-    mu, lmax, chunk = jnp.asarray(1.45), 6, 512
-    order, split, joint, pos = F._subset_first(o.n_samples, idx, chunk)
-    bl, rows, bl_sub = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split)
+    o, idx, sub, mu, lmax, chunk = *_subset_of(rng, 5000, 1800), jnp.asarray(1.45), 6, 512
+    bl, rows, bl_sub, _, _ = _pass_with_subset_first(o, idx, mu, lmax, chunk)
     via_table = F._mu_blocks(F._mirror_table_jit(sub, lmax), jnp.full((9,), mu), lmax, 1e-12)
     plain, _, none = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, False)
     assert none is None
@@ -178,12 +189,8 @@ def test_two_segment_joint_equals_the_rows_of_all_pixels(rng):
     `f`), then the other pixels' rows from the all-pixel pass. Its rows, in the `joint` order, are `eq25_rows` of
     every pixel (NumPy reference: the rows formed in one shot), its padding weighs nothing, and `_rows_dot`,
     `_rows_dot_many`, `_coef_rows` equal products with the formed rows."""
-    o = _observations(rng, 3000, rvis=True)
-    idx = np.sort(rng.choice(3000, 1100, replace=False))
-    sub = o.subset(idx)
-    mu, lmax, chunk = jnp.asarray(1.45), 5, 512
-    order, split, joint, pos = F._subset_first(o.n_samples, idx, chunk)
-    bl, rows, bl_sub = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split)
+    o, idx, sub, mu, lmax, chunk = *_subset_of(rng, 3000, 1100), jnp.asarray(1.45), 5, 512
+    bl, rows, bl_sub, joint, pos = _pass_with_subset_first(o, idx, mu, lmax, chunk)
     first = F._joint_from_table(sub, F._mirror_table_jit(sub, lmax), bl_sub, mu, lmax, F._K0())
     jt = F._joint_padded(o, bl, rows, None, joint, first)
     assert jt.rows_s is first.rows_s and jt.rows_s2 is rows[1]  # shared, not copied
