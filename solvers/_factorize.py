@@ -817,7 +817,8 @@ def factorize(
         else:
             if refine and find_sigma:  # the subset's blocks from the same pass (`_subset_first`)
                 perm = _subset_first(obs.n_samples, idx, chunk)
-                bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1])
+                bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1],
+                                                             tab)
             else:
                 bl_obs, _, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, False)
         _, ks, golden_steps = _golden_batch(bl_obs)
@@ -883,7 +884,7 @@ def factorize(
             blocks = (_mu_blocks(tab, mu9, lmax, rcond),) * 2
         else:
             perm = _subset_first(obs.n_samples, idx, chunk)
-            bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1])
+            bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1], tab)
             blocks = (bl_obs, bl_sub)
         _, ks, golden_steps = _golden_batch(blocks[0])
         res1, src = _lighting_and_source(blocks[0], ks, lmax, rcond, region_c, True)
@@ -1016,7 +1017,7 @@ def _golden_batch(bl: _Blocks):
 
 @jaxsh.jit
 def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows: bool, order=None,
-                      split: int | None = None):
+                      split: int | None = None, tab: MirrorTable | None = None):
     """The eq.-25 blocks at `mu` on all pixels (`accumulate_gram`, one pass), with pinv, repeated to the batch
     of 9 that `_golden_batch` was compiled for (`_mu_blocks`' layout), and with `rows` the pixels' eq.-25 rows
     `((9, N + pad), (n, N + pad))` from the same pass (else None). With `order` and `split` (`_subset_first`: the
@@ -1024,11 +1025,17 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
     from the same pass (else None), batched alike (the refinement's search needs them at the final mu, and a
     `_mu_blocks` call for that one mu took 61 ms at 3 × 256², 40,000 samples), and the rows are those of the
     chunks after the subset's (`_joint_padded` takes the subset's from its table; at 3 × 256², the pass alone took
-    216-219 ms so, 239-245 ms with every chunk's rows, 157-166 ms without rows).
+    216-219 ms so, 239-245 ms with every chunk's rows, 157-166 ms without rows). With `tab`, the subset's
+    `MirrorTable` (at least `chunk` pixels), the subset chunks' rows are taken from it, not evaluated
+    (`accumulate_gram`'s `known`; 183 against 216 ms).
     Returns `(blocks, rows or None, subset blocks or None)`."""
     o = obs if order is None else _permuted(obs, order)
+    known = None
+    if tab is not None and split is not None and tab.ys.shape[1] >= chunk:
+        npx = tab.ys.shape[1]
+        known = (tab.d[:npx], tab.ys, tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu))
     out = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility,
-                          mu, None, lmax, chunk, rows, split, split if rows and split is not None else 0)
+                          mu, None, lmax, chunk, rows, split, split if rows and split is not None else 0, known)
     out = out if isinstance(out, tuple) else (out,)
     g, rows_obs, g_sub = out[0], (out[1] if rows else None), (out[-1] if split is not None else None)
 
@@ -1043,8 +1050,10 @@ def _subset_first(n: int, idx: np.ndarray, chunk: int):
     """The pixel order of `_all_pixel_blocks` that puts the search subset first, and that of the refinement's
     `_Joint` on all pixels: `(order, split, joint, pos)`.
 
-    `order` `(split · chunk + N - len(idx),)`: the subset's indices `idx`, then the index `n` (a weight-0 pixel,
-    `_permuted`) up to `split` whole chunks, then the other pixels in their order; `split` the subset's chunks;
+    `order` `(split · chunk + N - len(idx),)`: the subset's indices `idx` filling `split` whole chunks, the index `n`
+    (a weight-0 pixel, `_permuted`) first in the last of them (where the subset does not fill it: so its pixels
+    are the last columns of the subset's table, `accumulate_gram`'s `known`), then the other pixels in their
+    order; `split` the subset's chunks;
     `joint` `(N,)`: `order` without that filler (the subset, whose rows come from its table, then the other
     pixels, whose rows come from the pass: `_joint_padded`); `pos` `(n,)`: where each pixel is in `joint`
     (`joint[pos] = arange(n)`). The arrays are device arrays."""
@@ -1052,7 +1061,8 @@ def _subset_first(n: int, idx: np.ndarray, chunk: int):
     others = np.ones(n, bool)
     others[idx] = False
     rest = np.flatnonzero(others)
-    order = np.concatenate([idx, np.full(split * chunk - len(idx), n), rest]).astype(np.int32)
+    full = len(idx) // chunk * chunk
+    order = np.concatenate([idx[:full], np.full(split * chunk - len(idx), n), idx[full:], rest]).astype(np.int32)
     joint = np.concatenate([idx, rest]).astype(np.int32)
     pos = np.empty(n, np.int32)
     pos[joint] = np.arange(n, dtype=np.int32)

@@ -110,7 +110,7 @@ def pixel_chunks(n, v, chunk: int, *fields):
 
 
 def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int, rows: bool = False,
-                    split: int | None = None, rows_from: int = 0):
+                    split: int | None = None, rows_from: int = 0, known=None):
     """Accumulate the eq.-25 normal-equation blocks over pixel chunks (`lax.scan`; zero-weight padding).
 
     With `rows`, also return the design rows of all pixels, diffuse and specular, pixels last:
@@ -120,8 +120,13 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
     reads them). With `split` (a number of chunks, static), also the blocks of the first `split · chunk` pixels
     alone, from the same pass (`factorize`: its search subset put first). `rows_from` (static): the rows of the
     chunks from this one on only, `((9, N + pad - rows_from · chunk), ...)` (`factorize` takes its subset's rows
-    from the subset's `MirrorTable`: 31 % less to write at 3 × 256²). Returns `Gram`, then `rows` with `rows`,
-    then the first pixels' `Gram` with `split`: a tuple when there is more than the `Gram`."""
+    from the subset's `MirrorTable`: 31 % less to write at 3 × 256²). `known`: `(d (P, 9), y (n_coeffs, P),
+    scale (P,))` or None, the rows of the first `rows_from` chunks' pixels as a `MirrorTable` holds them (diffuse
+    rows pixels first; the harmonics and their factor, `eq25_rows`' specular rows being `y * scale`), taken instead
+    of evaluated, `chunk <= P <= rows_from · chunk` (without `filt`): chunk `j` reads columns `j · chunk` on, the
+    last one the last `chunk` columns, so a last partial chunk must hold its pixels at its end (`factorize` puts
+    its weight-0 filler first there). Returns `Gram`, then `rows` with `rows`, then the first pixels' `Gram` with
+    `split`: a tuple when there is more than the `Gram`."""
     npx = n.shape[0]
     pad = (-npx) % chunk
     n_p, v_p, b_p, w_p, t_p, r_p = pixel_chunks(n, v, chunk, b, w, transfer, rvis)
@@ -134,11 +139,30 @@ def accumulate_gram(n, v, b, w, transfer, rvis, mu, filt, lmax: int, chunk: int,
         raise ValueError(f"`split` must be in [1, {n_p.shape[0]}] (chunks of {chunk} pixels), got {split}")
     if not 0 <= rows_from < n_p.shape[0]:
         raise ValueError(f"`rows_from` must be in [0, {n_p.shape[0] - 1}] (chunks of {chunk} pixels), got {rows_from}")
+    if known is not None and (filt is not None or not chunk <= known[1].shape[1] <= rows_from * chunk):
+        raise ValueError(f"`known` rows must span between one chunk ({chunk}) and `rows_from` chunks "
+                         f"({rows_from * chunk}) of pixels, without `filt`, got {known[1].shape[1]}")
+
+    def rows_of(i, nn, vv, tt, rr):
+        """The chunk's eq.-25 rows: from `known` before `rows_from` (both branches compiled, one run), else
+        evaluated (`eq25_rows`). Taking them from the table saved 30-35 ms of the 10 subset chunks' harmonics at
+        3 x 256^2."""
+        evaluate = lambda: eq25_rows(nn, vv, tt, rr, mu, filt, lmax, coeffs_first=True)  # noqa: E731
+        if known is None:
+            return evaluate()
+        kd, ky, ks = known
+
+        def take():
+            at = jnp.minimum(i * chunk, ky.shape[1] - chunk)
+            cols = lambda a: jax.lax.dynamic_slice_in_dim(a, at, chunk, a.ndim - 1)  # noqa: E731
+            return jax.lax.dynamic_slice_in_dim(kd, at, chunk, 0).T, cols(ky) * cols(ks)[None, :]
+
+        return jax.lax.cond(i < rows_from, take, evaluate)
 
     def step(carry, xs):
         acc, count, buf, first, i = carry
         nn, vv, bb, ww, tt, rr = xs
-        d, s = eq25_rows(nn, vv, tt, rr, mu, filt, lmax, coeffs_first=True)  # (9, chunk), (nc, chunk)
+        d, s = rows_of(i, nn, vv, tt, rr)  # (9, chunk), (nc, chunk)
         # one product of the stacked [d; s; b^T] with its weighted self gives every block (dd, ds, ss, db, sb, and
         # bb on the diagonal of its last C x C): five products per chunk took 251 ms at 3 x 256^2, lmax 12, this 226
         r = jnp.concatenate([d, s, bb.T], 0)  # (k, chunk)

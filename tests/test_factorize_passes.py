@@ -77,6 +77,11 @@ def test_accumulate_gram_stacked_product_and_split_equal_numpy_sums(rng, transfe
     for bad in (-1, 6):
         with pytest.raises(ValueError, match="rows_from"):
             run_from(o.normals, o.views, o.values, o.weights, None, None, mu, None, lmax, chunk, True, None, bad)
+    for width in (chunk - 1, split * chunk + 1):  # known rows narrower than a chunk, or wider than the chunks skipped
+        known = (jnp.zeros((width, 9)), jnp.zeros(((lmax + 1) ** 2, width)), jnp.zeros(width))
+        with pytest.raises(ValueError, match="known"):
+            run_from(o.normals, o.views, o.values, o.weights, None, None, mu, None, lmax, chunk, True, split, split,
+                     known)
 
 
 def test_subset_first_order_puts_the_subset_in_whole_chunks_first():
@@ -86,8 +91,10 @@ def test_subset_first_order_puts_the_subset_in_whole_chunks_first():
     order, joint, pos = np.asarray(order), np.asarray(joint), np.asarray(pos)
     rest = np.setdiff1d(np.arange(n), idx)
     assert split == 2 and order.shape == (2 * 4 + n - 6,)
-    np.testing.assert_array_equal(order[:6], idx)
-    np.testing.assert_array_equal(order[6:8], [n, n])  # the weight-0 pixel fills the subset's last chunk
+    np.testing.assert_array_equal(order[:4], idx[:4])
+    # the weight-0 pixel fills the subset's last chunk, first: its pixels are then the table's last columns
+    np.testing.assert_array_equal(order[4:6], [n, n])
+    np.testing.assert_array_equal(order[6:8], idx[4:])
     np.testing.assert_array_equal(order[8:], rest)
     # the refinement's order: the subset (rows from its table), then the pixels of the chunks after it
     np.testing.assert_array_equal(joint, np.concatenate([idx, rest]))
@@ -134,20 +141,24 @@ def _subset_of(rng, n_px, n_sub):
     return o, idx, o.subset(idx)
 
 
-def _pass_with_subset_first(o, idx, mu, lmax, chunk):
-    """The all-pixel pass with the subset first (`_subset_first`, rows after the subset's chunks):
-    `(blocks, rows, subset blocks, joint, pos)`."""
+def _pass_with_subset_first(o, idx, mu, lmax, chunk, tab=None):
+    """The all-pixel pass with the subset first (`_subset_first`, rows after the subset's chunks; with `tab`, the
+    subset's `MirrorTable`, the subset chunks' rows taken from it): `(blocks, rows, subset blocks, joint, pos)`."""
     order, split, joint, pos = F._subset_first(o.n_samples, idx, chunk)
-    return (*F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split), joint, pos)
+    return (*F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, True, order, split, tab), joint, pos)
 
 
-def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng):
+@pytest.mark.parametrize("table_rows", [False, True])
+def test_all_pixel_pass_gives_the_subset_blocks_the_table_gave(rng, table_rows):
     """The refinement's blocks on the search subset at the final mu come from the all-pixel pass (the subset's
     pixels first); they used to come from the subset's `MirrorTable` (`_mu_blocks`): equal to rounding, and
-    the all-pixel blocks equal a pass in the original order."""
+    the all-pixel blocks equal a pass in the original order. With `table_rows` the subset chunks' rows are the
+    table's (`accumulate_gram`'s `known`; 1800 pixels: three whole chunks of 512 and a partial one, filler first),
+    not evaluated: the same blocks and rows."""
     o, idx, sub, mu, lmax, chunk = *_subset_of(rng, 5000, 1800), jnp.asarray(1.45), 6, 512
-    bl, rows, bl_sub, _, _ = _pass_with_subset_first(o, idx, mu, lmax, chunk)
-    via_table = F._mu_blocks(F._mirror_table_jit(sub, lmax), jnp.full((9,), mu), lmax, 1e-12)
+    tab = F._mirror_table_jit(sub, lmax)
+    bl, rows, bl_sub, _, _ = _pass_with_subset_first(o, idx, mu, lmax, chunk, tab if table_rows else None)
+    via_table = F._mu_blocks(tab, jnp.full((9,), mu), lmax, 1e-12)
     plain, _, none = F._all_pixel_blocks(o, mu, lmax, chunk, 1e-12, False)
     assert none is None
     for field in ("dd", "ds", "ss", "db", "sb", "bb", "count"):
