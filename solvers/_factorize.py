@@ -1033,7 +1033,7 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
     known = None
     if tab is not None and split is not None and tab.ys.shape[1] >= chunk:
         npx = tab.ys.shape[1]
-        known = (tab.d[:npx], tab.ys, tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu))
+        known = (tab.d[:npx], tab.ys, _table_factor(tab, npx, mu))
     out = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility,
                           mu, None, lmax, chunk, rows, split, split if rows and split is not None else 0, known)
     out = out if isinstance(out, tuple) else (out,)
@@ -1493,8 +1493,16 @@ def _table_parts(o: Observations, tab: MirrorTable, bl, mu, lmax: int, k):
     program (run eagerly, these few operations were a compilation each at the first call)."""
     bl = jax.tree_util.tree_map(lambda a: a[k], bl) if bl.g.dd.ndim == 3 else bl
     npx = o.n_samples  # the table's first columns (its last ones are quadrature nodes)
-    f = tab.s_scale[:npx] if mu is None else tab.s_scale[:npx] * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu)
+    f = _table_factor(tab, npx, mu)
     return _first(bl), tab.d[:npx].T, f
+
+
+def _table_factor(tab: MirrorTable, npx: int, mu):
+    """The factor of the table's specular rows at its first `npx` columns (its pixels): $F(\\mu, \\theta_o)\\,V$, the
+    reflected-ray visibility `s_scale` (0 where seen from behind) times the Fresnel factor (none with `mu` None), so
+    that `tab.ys * factor` are `eq25_rows`' specular rows `(npx,)`."""
+    scale = tab.s_scale[:npx]
+    return scale if mu is None else scale * jaxsh.fresnel_normalized(tab.cos_o[:npx], mu)
 
 
 def _joint_padded(o: Observations, bl, rows, column, joint, first: _Joint) -> _Joint:
