@@ -382,7 +382,7 @@ def directional_visibility(
     mesh,
     points: Real[ArrayLike, "N 3"],
     normals: Real[ArrayLike, "N 3"],
-    directions: Real[ArrayLike, "J 3"],
+    directions: Real[ArrayLike, "J 3"] | Real[ArrayLike, "N J 3"],
     eps: float | None = None,
     engine: str = "auto",
 ) -> Float[Array, "N J"]:
@@ -400,7 +400,7 @@ def directional_visibility(
     - `points`, `normals`: `(N, 3)` surface points and normals (normalized
       here), e.g. `gb.position[gb.mask]`, `gb.normal[gb.mask]`.
     - `directions`: `(J, 3)` directions from the surface towards the sources
-      (normalized here).
+      (normalized here), or `(N, J, 3)`: directions of each point's own.
     - `eps`: origin offset along the normal (default 1e-4·`mesh.scale`).
     - `engine`: see the module docstring.
 
@@ -409,15 +409,16 @@ def directional_visibility(
     mesh = _check_mesh(mesh)
     p, n, dt = _points_normals(points, normals)
     d = as_float_array(directions, "directions")
-    if d.ndim != 2 or d.shape[-1] != 3:
-        raise ValueError(f"`directions` must have shape (J, 3), got {tuple(d.shape)}")
+    if d.ndim not in (2, 3) or d.shape[-1] != 3 or (d.ndim == 3 and d.shape[0] != len(p)):
+        raise ValueError(f"`directions` must have shape (J, 3) or ({len(p)}, J, 3) (one set per point), "
+                         f"got {tuple(d.shape)}")
     d = np.asarray(d, dtype=np.float64)
     if np.any(np.linalg.norm(d, axis=-1) == 0.0):
         raise ValueError("`directions` contains a zero vector")
     d = _unit_np(d)
     e = _eps(mesh, eps)
     caster = _caster(mesh, engine)
-    dirs = np.broadcast_to(d[None, :, :], (len(p), len(d), 3))
+    dirs = np.broadcast_to(d[None, :, :], (len(p), len(d), 3)) if d.ndim == 2 else d
     vis = _visible_pairs(caster, p + e * n, n, dirs)
     return jnp.asarray(vis, dtype=dt)
 

@@ -27,15 +27,31 @@ import jax
 import jax.numpy as jnp
 
 from ._microfacet import _microfacet_specular
-from ._reflectance import _fresnel_normalized, _half_angle_pairs, _half_angle_parts, _theta_h_sq, _ts_specular
+from ._reflectance import (
+    _fresnel_normalized,
+    _half_angle_pairs,
+    _half_angle_parts,
+    _pair_component,
+    _theta_h_sq,
+    _ts_specular,
+)
+
+
+def _pair_dots(a, sd):
+    """$a_p\\cdot\\omega_{pm}$ `(P, M)` of per-pixel vectors `a` `(P, 3)` and directions `sd`, shared `(M, 3)` (one
+    matrix product) or per pixel (the tuple of the three components `(P, M)`)."""
+    if not isinstance(sd, tuple):
+        return a @ sd.T
+    return a[:, 0:1] * sd[0] + a[:, 1:2] * sd[1] + a[:, 2:3] * sd[2]
 
 
 class _Pairs:
     """Per-pair `(P, M)` and per-pixel `(P, 1)` geometry of `P` pixels (`n`, `v` `(P, 3)`) and `M` directions
-    `sd` `(M, 3)` (plain container, built and used inside one trace)."""
+    `sd`, shared `(M, 3)` or per pixel (the tuple of its components `(P, M)`; plain container, built and used inside
+    one trace)."""
 
     def __init__(self, n, v, sd):
-        self.ci = n @ sd.T  # (P, M)
+        self.ci = _pair_dots(n, sd)  # (P, M)
         co = jnp.sum(n * v, -1)[:, None]  # (P, 1)
         self.cos_o = co
         self.pixel_ok = co > 0.0
@@ -57,9 +73,9 @@ def _ts_pairs(p: _Pairs, mu, sigma):
 
 def _microfacet_pairs(p: _Pairs, mu, sigma, dist: str):
     """`cook_torrance_smith`'s (`dist="beckmann"`) or `ggx`'s specular part at every pair (0 below a horizon)."""
-    sdn = jnp.sum(p.sd * p.sd, -1)[None, :]  # |w|^2 (1, M)
+    sdn = sum(_pair_component(p.sd, k) ** 2 for k in range(3))  # |w|^2 (1, M) or (P, M)
     vn = jnp.sum(p.v * p.v, -1)[:, None]  # |v|^2 (P, 1)
-    wv = p.v @ p.sd.T  # (P, M)
+    wv = _pair_dots(p.v, p.sd)  # (P, M)
     hh = jnp.where(p.valid, sdn + 2.0 * wv + vn, 4.0)  # |w + v|^2 (n + n at the substitute)
     rs = jax.lax.rsqrt(hh)
     tan2h = p.s2 / (p.c * p.c)
@@ -80,6 +96,7 @@ PAIR_MODELS = {
 
 def specular_pairs(n, v, sd, mu, sigma, model: str):
     """$\\rho_s(\\omega_j, \\omega_o, n)$ (the specular part at $K_s = 1$) for every pixel of `n`, `v` `(P, 3)` and
-    direction of `sd` `(M, 3)`: `(P, M)`, and $\\cos\\theta_i$ `(P, M)`, $\\cos\\theta_o$ `(P, 1)`."""
+    direction of `sd` (`(M, 3)`, or per pixel: the tuple of its components `(P, M)`): `(P, M)`, and
+    $\\cos\\theta_i$ `(P, M)`, $\\cos\\theta_o$ `(P, 1)`."""
     p = _Pairs(n, v, sd)
     return PAIR_MODELS[model](p, mu, sigma), p.ci, p.cos_o

@@ -344,11 +344,19 @@ def _half_angle_parts(h, n):
     return _dot(x, x), _dot(h, n)
 
 
+def _pair_component(d, k: int):
+    """Component `k` of directions shared by every pixel, `(J, 3)` -> `(1, J)`, or per pixel, given as the tuple of
+    their three components `(N, J)` -> `(N, J)` (XLA:CPU vectorizes those, not a minor axis of 3)."""
+    return d[k] if isinstance(d, tuple) else d[None, :, k]
+
+
 def _half_angle_pairs(d, n, v=None):
     """`_half_angle_parts` of every pair of a direction `d` `(J, 3)` and a pixel (normal `n`, view `v` `(N, 3)`):
     $(|h\\times n|^2,\\ h\\cdot n)$ `(N, J)` with $h = d_j + v_i$ ($h = d_j$ with `v=None`), by components, with no
-    `(N, J, 3)` array (the fast sources of the practical model, the reference renderer's pairs)."""
-    h = [d[None, :, k] if v is None else d[None, :, k] + v[:, k : k + 1] for k in range(3)]
+    `(N, J, 3)` array (the fast sources of the practical model, the reference renderer's pairs). `d` may also be
+    per pixel, the tuple of its components `(N, J)` (the reference renderer's disk nodes clipped at each pixel's
+    horizon)."""
+    h = [_pair_component(d, k) if v is None else _pair_component(d, k) + v[:, k : k + 1] for k in range(3)]
     nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
     cx = h[1] * nz - h[2] * ny
     cy = h[2] * nx - h[0] * nz

@@ -32,6 +32,8 @@ bicubically at the mirror directions, within a documented error bound
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -361,25 +363,88 @@ def _combine(terms, mask, kd, ks, mu, sigma):
     return out
 
 
-def _disk_quadrature(direction, radius, n_theta, n_phi, dt):
-    """Directions and solid-angle weights covering a spherical cap (Gauss-Legendre × uniform)."""
-    x, w = np.polynomial.legendre.leggauss(n_theta)
-    # 1 - cos r and 1 - u without cancellation: float32 lost the solid angle of small disks (-4.6 % at r = 1e-3,
-    # +0.14 % at the sun's 0.005; `jaxsh.disk_energy` already took 4 pi sin^2(r/2))
-    h = 2.0 * jnp.sin(0.5 * radius) ** 2  # 1 - cos r
-    q = 0.5 * h * jnp.asarray(1.0 - x, dt)  # 1 - u at each node
-    u = 1.0 - q
-    wu = 0.5 * h * jnp.asarray(w, dt)
-    phi = jnp.asarray(2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi, dt)
+def _disk_azimuths(n, direction, radius, n_phi, dt):
+    """The azimuths of the quadrature of one disk (centre `direction`, angular `radius`) clipped at the horizons of
+    the unit normals `n` `(P, 3)`: `(P, 7, n_φ)`, for each azimuth $\\cos m$, $\\sin m$ and $h$ of its radial interval
+    $[m - h, m + h]$, the three components of $e_\\varphi$ and the azimuth's weight (`_disk_nodes_at` makes the nodes).
+
+    The rule is polar about the centre $c$: `n_theta` Gauss-Legendre nodes in $r$, the angle from the centre
+    ($d\\omega = \\sin r\\,dr\\,d\\varphi$), on each of `n_phi` azimuths. Along the ray of azimuth φ,
+    $\\omega(r) = \\cos r\\,c + \\sin r\\,e_\\varphi$, the cosine $n\\cdot\\omega(r) = A\\cos r + B_\\varphi\\sin r$
+    ($A = n\\cdot c$, $B_\\varphi = n\\cdot e_\\varphi$) is a sinusoid in $r$ whose zeros are π apart: on $[0, R]$
+    ($R \\le π$) it changes sign at most once, at $r^* = \\operatorname{atan2}(-A, B_\\varphi) \\bmod π$, and the
+    part above the horizon is one interval, $[0, R]$, $[0, r^*]$, $[r^*, R]$ or empty. The nodes in $r$ span
+    that interval, so the integrand has no jump between nodes. (In $q = 1 - \\cos r$, the variable of the former
+    rule, the integrand has a $\\sqrt q$ term at the centre that only a full circle of uniform azimuths cancels.)
+    The radial integral is then smooth in φ except at the two azimuths where the horizon crosses the disk's rim
+    ($r^* = R$: $B_\\varphi = -A\\cot R$); where it does, the azimuths are Gauss-Legendre nodes on the two arcs
+    between them ($\\lfloor n_φ/2 \\rfloor$ and $\\lceil n_φ/2 \\rceil$), elsewhere $n_φ$ uniform ones
+    (docs/conventions.md, "The reference renderer"). Gradient-safe: every `sqrt`, `arccos` and `atan2` sees
+    substituted inputs where its value is not used.
+    """
     t, b = tangent_frame(direction)
-    s = jnp.sqrt(jnp.clip(q * (2.0 - q), 0.0))  # sin of the node's angle from the centre
-    dirs = (
-        u[:, None, None] * direction[None, None, :]
-        + (s[:, None] * jnp.cos(phi)[None, :])[..., None] * t[None, None, :]
-        + (s[:, None] * jnp.sin(phi)[None, :])[..., None] * b[None, None, :]
-    ).reshape(-1, 3)
-    wts = (wu[:, None] * jnp.full((n_phi,), 2 * np.pi / n_phi, dt)[None, :]).reshape(-1)
-    return dirs, wts
+    a = (n @ direction)[:, None]  # A (P, 1)
+    nt_, nb_ = (n @ t)[:, None], (n @ b)[:, None]  # B_phi = nt cos(phi) + nb sin(phi) = rho cos(phi - phi0)
+    # the azimuths: uniform, or Gauss-Legendre on the two arcs between the rim crossings phi0 -+ hw
+    rho2 = nt_ * nt_ + nb_ * nb_
+    rho = jnp.sqrt(jnp.where(rho2 > 0, rho2, 1.0))
+    rim = -a * jnp.cos(radius) / jnp.sin(radius)  # B_phi where r* = R
+    crosses = (rho2 > 0) & (jnp.abs(rim) < rho) & (n_phi >= 2)
+    hw = jnp.arccos(jnp.where(crosses, rim / rho, 0.0))  # in (0, pi)
+    phi0 = jnp.arctan2(nb_, jnp.where(rho2 > 0, nt_, 1.0))
+    arcs = []
+    for k, start, length in ((n_phi // 2, phi0 - hw, 2.0 * hw),
+                             (n_phi - n_phi // 2, phi0 + hw, 2.0 * (np.pi - hw))):
+        xk, wk = np.polynomial.legendre.leggauss(k) if k else (np.zeros(0), np.zeros(0))
+        arcs.append((start + 0.5 * length * jnp.asarray(xk + 1.0, dt)[None, :],
+                     0.5 * length * jnp.asarray(wk, dt)[None, :]))
+    phi = jnp.where(crosses, jnp.concatenate([arcs[0][0], arcs[1][0]], 1),
+                    jnp.asarray(2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi, dt)[None, :])  # (P, n_phi)
+    wphi = jnp.where(crosses, jnp.concatenate([arcs[0][1], arcs[1][1]], 1), jnp.asarray(2 * np.pi / n_phi, dt))
+    cph, sph = jnp.cos(phi), jnp.sin(phi)
+    bb = nt_ * cph + nb_ * sph  # B_phi (P, n_phi)
+    inside, end_in = a > 0, a * jnp.cos(radius) + bb * jnp.sin(radius) > 0  # above the horizon at r = 0, r = R
+    # r*, used only where the sign changes (so A and B_phi are not both 0 there)
+    flat = (a == 0) & (bb == 0)
+    r_cut = jnp.mod(jnp.arctan2(jnp.where(flat, -1.0, -a), jnp.where(flat, 0.0, bb)), np.pi)
+    r_cut = jnp.clip(r_cut, 0.0, radius)
+    r_lo = jnp.where(inside, 0.0, jnp.where(end_in, r_cut, radius))
+    r_hi = jnp.where(end_in, radius, jnp.where(inside, r_cut, radius))
+    m, h = 0.5 * (r_lo + r_hi), 0.5 * (r_hi - r_lo)
+    e = [cph * t[k] + sph * b[k] for k in range(3)]  # e_phi per component
+    return jnp.stack([jnp.cos(m), jnp.sin(m), h, *e, wphi], axis=1)  # (P, 7, n_phi)
+
+
+def _disk_nodes_at(az, direction, n_theta, dt):
+    """The nodes on the azimuths `az` of `_disk_azimuths` (`(P, 7, n_φ)`), `n_theta` Gauss-Legendre nodes on each
+    one's radial interval: the directions' three components and the solid-angle weights, each `(P, n_θ n_φ)`."""
+    x, w = np.polynomial.legendre.leggauss(n_theta)
+    cm, sm, h, ex, ey, ez, wphi = (az[:, i] for i in range(7))
+    e = (ex, ey, ez)
+    # r = m + h x at the Gauss-Legendre node x in (-1, 1): cos r and sin r by the addition theorem from cos m,
+    # sin m (per azimuth) and cos(hx), sin(hx) by their Taylor series (|hx| <= R/2 <= pi/2: the terms to degree
+    # 20 and 21 leave < 2e-17). XLA:CPU's cosine and sine take ~6 ns each in float64, and it fuses them into each
+    # consumer (and drops `optimization_barrier`s first): as `jnp.cos(r)`, `jnp.sin(r)` the nodes took 4x the
+    # time of the whole render before (docs/performance.md, twenty-fifth round).
+    cm, sm = cm[:, None, :], sm[:, None, :]  # (P, 1, n_phi)
+    u = h[:, None, :] * jnp.asarray(x, dt)[None, :, None]  # (P, n_theta, n_phi)
+    cu, su = _cos_sin_small(u)
+    cr, sr = cm * cu - sm * su, sm * cu + cm * su
+    p = h.shape[0]
+    dirs = tuple((cr * direction[k] + sr * e[k][:, None, :]).reshape(p, -1) for k in range(3))
+    wts = h[:, None, :] * sr * jnp.asarray(w, dt)[None, :, None] * wphi[:, None, :]  # d omega = sin r dr dphi
+    return dirs, wts.reshape(p, -1)
+
+
+def _cos_sin_small(u):
+    """$\\cos u$, $\\sin u$ for $|u| \\le π/2$ by their Taylor series in $u^2$ (Horner; to degrees 20 and 21: the
+    remainders are below 2e-17 and 1.2e-18), multiply-adds only."""
+    u2 = u * u
+    c = s = jnp.zeros_like(u)
+    for k in range(10, -1, -1):  # cos: sum (-1)^k u^2k / (2k)!; sin: u sum (-1)^k u^2k / (2k+1)!
+        c = c * u2 + (-1) ** k / math.factorial(2 * k)
+        s = s * u2 + (-1) ** k / math.factorial(2 * k + 1)
+    return c, u * s
 
 
 def _reference_lighting(lighting, light_kw) -> Lighting | None:
@@ -437,15 +502,15 @@ def render_reference(
 
     $B = \\int L(\\omega_i)\\,\\rho(\\omega_i, \\omega_o)\\max(n\\cdot\\omega_i, 0)\\,V\\,d\\omega_i$
     with $\\rho$ = `torrance_sparrow` (R&H sec. 5.2), integrated exactly for
-    delta sources, by Gauss-Legendre × uniform-azimuth quadrature over each
-    disk source (`disk_nodes` = (n_θ, n_φ) per disk; resolve the lobe: the
-    nodes should be finer than σ; where a pixel's lobe is cut by its horizon —
-    grazing views, near a silhouette — the integrand jumps inside the disk and
-    the error falls only like the node spacing: measured against a brute-force
-    integral, σ 0.15 and a 1.2 rad disk at the default nodes, +105 % at
-    $\\cos\\theta_o$ = 0.021 and +3 % at 0.0003, against 1e-4 inside the
-    silhouette; on a 64² sphere at σ 0.1, 30 of 2,660 pixels off by more than
-    1 %, the worst 9 %: raise `disk_nodes` where those pixels matter), and texel by texel over a lat-long
+    delta sources, by a polar Gauss-Legendre rule over each disk source made
+    for each pixel and clipped at its horizon (`disk_nodes` = (n_θ, n_φ) per
+    disk: the integrand has no jump between nodes, so the
+    rule converges spectrally once the nodes resolve the lobe: within 1e-10 of
+    scipy's adaptive quadrature at (48, 192) where the lobe meets the horizon
+    inside the disk, against 1e-3 with one rule shared by every pixel, as
+    before; the nodes should still be finer than the lobe, which at grazing
+    views is thin: 7.7 % low at $\\cos\\theta_o$ = 0.021, σ 0.15, with the
+    default nodes; docs/conventions.md, "The reference renderer"), and texel by texel over a lat-long
     environment map (exact Fejér weights; accurate only where the lobe is
     wider than a texel). Memory-bounded (pixels in chunks), no SH
     anywhere: the ground truth the practical model is checked against. The
@@ -471,7 +536,8 @@ def render_reference(
       ray-cast (`directional_visibility`; NumPy/embree, N × M rays) and the
       integrand multiplied by its visibility (R&H sec. 6.4 shadowing; each
       direction's visibility is exact, but a shadow edge across a disk makes the
-      integrand jump: 0.5–1.3 % at the default `disk_nodes`, ≤ 2e-4 at (192, 384)).
+      integrand jump: 0.5–1.3 % at the default `disk_nodes`, ≤ 2e-4 at (192, 384), measured with the former
+      rule shared by every pixel).
     - `chunk` (static): pixels per step of the loop over pixels; each step holds a few
       `(chunk, M)` arrays for the `M` directions (quadrature nodes, texels, sources). Default:
       $\\max(16, \\min(4096, 2^{19}/M))$ (about 4 MB per array; docs/performance.md, "Fourteenth round").
@@ -524,41 +590,48 @@ def render_reference(
         c = max(c, ce)
         dirs_all.append(latlong_directions(h, w, dtype=dt).reshape(-1, 3))
         rad_all.append((env.astype(dt) * latlong_weights(h, w, dtype=dt)[..., None]).reshape(-1, ce))
+    disks = None
+    nodes = tuple(check_positive_int(disk_nodes[k], f"disk_nodes[{k}]") for k in range(2))
     if lighting is not None and lighting.disk_directions is not None:
+        # each disk's nodes are made per pixel, clipped at its horizon (`_disk_azimuths`, `_disk_nodes_at`)
         ddir = lighting.disk_directions.astype(dt)
-        drad = lighting.disk_radius.astype(dt)
-        dl = lighting.disk_radiance.astype(dt)
-        nt, npf = check_positive_int(disk_nodes[0], "disk_nodes[0]"), check_positive_int(disk_nodes[1], "disk_nodes[1]")
-        for k in range(ddir.shape[0]):
-            dd, ww = _disk_quadrature(ddir[k] / jnp.linalg.norm(ddir[k]), drad[k], nt, npf, dt)
-            dirs_all.append(dd)
-            rad_all.append(ww[:, None] * dl[k][None, :])
-            c = max(c, dl.shape[1])
+        disks = (ddir / jnp.linalg.norm(ddir, axis=-1, keepdims=True), lighting.disk_radius.astype(dt),
+                 lighting.disk_radiance.astype(dt))
+        c = max(c, disks[2].shape[1])
     if lighting is not None and lighting.fast_directions is not None:
         jd = lighting.fast_directions.astype(dt)
         je = lighting.fast_energy.astype(dt)
         dirs_all.append(jd / jnp.linalg.norm(jd, axis=-1, keepdims=True))
         rad_all.append(je)
         c = max(c, je.shape[1])
-    if not dirs_all:
+    if not dirs_all and disks is None:
         raise ValueError("give the lighting: a `Lighting` with fast sources / disks and/or `envmap` (keyword form: `envmap`, `disks` and/or `directional`)")
-    sd = jnp.concatenate(dirs_all, axis=0)
-    sl = jnp.concatenate([jnp.broadcast_to(x, (x.shape[0], c)) for x in rad_all], axis=0)  # radiance x weight
+    sd = sl = None
+    if dirs_all:  # directions shared by every pixel: texels, delta sources
+        sd = jnp.concatenate(dirs_all, axis=0)
+        sl = jnp.concatenate([jnp.broadcast_to(x, (x.shape[0], c)) for x in rad_all], axis=0)  # radiance x weight
+    if disks is not None:
+        disks = (disks[0], disks[1], jnp.broadcast_to(disks[2], (disks[2].shape[0], c)))
     # unit normals and views, as `render_practical` (a zero one, a G-buffer's miss, stays 0 and renders 0): |n| = 2
     # doubled the diffuse term and halved the specular one
     n = _unit_or_zero(jnp.broadcast_to(normals, batch + (3,)).astype(dt).reshape(-1, 3))
     v = _unit_or_zero(jnp.broadcast_to(views, batch + (3,)).astype(dt).reshape(-1, 3))
     kd = _bcast(kd.astype(dt), batch, c).reshape(-1, c)
     ks = _bcast(ks.astype(dt), batch, c).reshape(-1, c)
-    vis = None
+    vis = vis_disk = None
     if mesh is not None:
         from ._raycast import directional_visibility
 
-        pts = jnp.broadcast_to(jnp.asarray(points, dt), batch + (3,)).reshape(-1, 3)
-        vis = jnp.asarray(directional_visibility(mesh, np.asarray(pts), np.asarray(n), np.asarray(sd)), dt)
+        pts = np.asarray(jnp.broadcast_to(jnp.asarray(points, dt), batch + (3,)).reshape(-1, 3))
+        if sd is not None:
+            vis = jnp.asarray(directional_visibility(mesh, pts, np.asarray(n), np.asarray(sd)), dt)
+        if disks is not None:  # every pixel's own disk nodes
+            nodes_at = np.asarray(_disk_nodes_jit(n, disks, nodes))
+            vis_disk = jnp.asarray(directional_visibility(mesh, pts, np.asarray(n), nodes_at), dt)
     sigma, mu = _check_sigma_traced(jnp.asarray(sigma, dt), None if mu is None else jnp.asarray(mu, dt))
-    chunk = _reference_chunk(sd.shape[0]) if chunk is None else check_positive_int(chunk, "chunk")
-    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, brdf_model)
+    m = (0 if sd is None else sd.shape[0]) + (0 if disks is None else disks[0].shape[0] * nodes[0] * nodes[1])
+    chunk = _reference_chunk(m) if chunk is None else check_positive_int(chunk, "chunk")
+    out = _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, brdf_model, disks, vis_disk, nodes)
     return out.reshape(batch + (c,))
 
 
@@ -572,24 +645,109 @@ def _reference_chunk(m: int) -> int:
     return max(16, min(4096, (1 << 19) // m))
 
 
+def _azimuths(n, disks, nodes):
+    """Every disk's `_disk_azimuths` at the pixels `n` `(P, 3)`: `(P, K, 7, n_φ)`."""
+    return jnp.stack([_disk_azimuths(n, disks[0][k], disks[1][k], nodes[1], n.dtype)
+                      for k in range(disks[0].shape[0])], axis=1)
+
+
+def _disk_nodes(az, disks, nodes):
+    """Every disk's `_disk_nodes_at` side by side: the directions' components and the weights, each
+    `(P, K n_θ n_φ)`."""
+    parts = [_disk_nodes_at(az[:, k], disks[0][k], nodes[0], az.dtype) for k in range(az.shape[1])]
+    dirs = tuple(jnp.concatenate([d[i] for d, _ in parts], axis=1) for i in range(3))
+    return dirs, jnp.concatenate([w for _, w in parts], axis=1)
+
+
 @jit
-def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, model="torrance_sparrow"):
+def _disk_nodes_jit(n, disks, nodes):
+    """The directions of `_disk_nodes` at every pixel, `(P, K n_θ n_φ, 3)` (for the ray caster)."""
+    return jnp.stack(_disk_nodes(_azimuths(n, disks, nodes), disks, nodes)[0], axis=-1)
+
+
+def _disk_shared_nodes(disks, nodes):
+    """The rule of `_disk_azimuths` / `_disk_nodes_at` where no pixel's horizon cuts the disk (the same for every
+    pixel there: radial nodes on [0, R], uniform azimuths): directions `(K n_θ n_φ, 3)` and the radiance times the
+    weight `(K n_θ n_φ, C)`, in the order of `_disk_nodes`."""
+    dt = disks[0].dtype
+    x, w = np.polynomial.legendre.leggauss(nodes[0])
+    phi = jnp.asarray(2 * np.pi * (np.arange(nodes[1]) + 0.5) / nodes[1], dt)
+    dirs, wts = [], []
+    for k in range(disks[0].shape[0]):
+        c, radius = disks[0][k], disks[1][k]
+        t, b = tangent_frame(c)
+        h = 0.5 * radius
+        cu, su = _cos_sin_small(h * jnp.asarray(x, dt))
+        cr, sr = jnp.cos(h) * cu - jnp.sin(h) * su, jnp.sin(h) * cu + jnp.cos(h) * su  # r = h + h x, (n_theta,)
+        e = jnp.cos(phi)[:, None] * t[None, :] + jnp.sin(phi)[:, None] * b[None, :]  # (n_phi, 3)
+        dirs.append((cr[:, None, None] * c[None, None, :] + sr[:, None, None] * e[None, :, :]).reshape(-1, 3))
+        wk = h * sr[:, None] * jnp.asarray(w, dt)[:, None] * jnp.full((1, nodes[1]), 2 * np.pi / nodes[1], dt)
+        wts.append(wk.reshape(-1, 1) * disks[2][k][None, :])
+    return jnp.concatenate(dirs, 0), jnp.concatenate(wts, 0)
+
+
+def _horizon_cuts_a_disk(n, v, disks):
+    """`(P,)` True where a seen pixel's horizon crosses some disk ($|n\\cdot c| < \\sin R$, or $R \\ge π/2$) with a
+    margin of 1e-6 for rounding: only there do its nodes differ from `_disk_shared_nodes`."""
+    seen = jnp.sum(n * v, -1) > 0
+    dots = jnp.abs(n @ disks[0].T)  # (P, K)
+    r = disks[1][None, :]
+    cut = (r >= 0.5 * np.pi) | (dots < jnp.sin(jnp.minimum(r, 0.5 * np.pi)) + 1e-6)
+    return seen & jnp.any(cut, axis=-1)
+
+
+@jit
+def _reference(n, v, kd, ks, mu, sigma, sd, sl, vis, chunk, model="torrance_sparrow", disks=None, vis_disk=None,
+               nodes=(48, 96)):
     npx = n.shape[0]
     pad = (-npx) % chunk if npx > chunk else 0
     size = chunk if npx > chunk else npx
+    # each disk node's radiance (its weight is per pixel)
+    disk_l = None if disks is None else jnp.repeat(disks[2], nodes[0] * nodes[1], axis=0)
+    shared = None if disks is None or vis_disk is not None else _disk_shared_nodes(disks, nodes)
 
     def one_chunk(args):
-        nn, vv, kkd, kks, vv_is = args
-        # rho_s at K_s = 1 for every (pixel, direction) pair: F S / (4 cos cos) (or F D G / ...), 0 below horizons
-        spec, ci, cos_o = specular_pairs(nn, vv, sd, mu, sigma, model)
-        cos_i = jnp.maximum(ci, 0.0) if vv_is is None else jnp.maximum(ci, 0.0) * vv_is
-        diff = jnp.where(cos_o > 0, cos_i, 0.0) @ sl  # (n, C)
-        spc = (spec * cos_i) @ sl
-        return kkd * diff + kks * spc
+        nn, vv, kkd, kks, vv_is, vv_disk, az_, cut_ = args
 
-    arrs = [None if a is None else jnp.pad(a, ((0, pad), (0, 0))) for a in (n, v, kd, ks, vis)]
+        def part(dirs, wts, rad, vis_):
+            # rho_s at K_s = 1 for every (pixel, direction) pair: F S / (4 cos cos) (or F D G / ...), 0 below horizons
+            spec, ci, cos_o = specular_pairs(nn, vv, dirs, mu, sigma, model)
+            cos_i = jnp.maximum(ci, 0.0) if vis_ is None else jnp.maximum(ci, 0.0) * vis_
+            if wts is not None:
+                cos_i = cos_i * wts
+            diff = jnp.where(cos_o > 0, cos_i, 0.0) @ rad  # (n, C)
+            spc = (spec * cos_i) @ rad
+            return kkd * diff + kks * spc
+
+        def per_pixel():
+            dd, ww = _disk_nodes(az_.reshape(az_.shape[0], disks[0].shape[0], 7, nodes[1]), disks, nodes)
+            return part(dd, ww, disk_l, vv_disk)
+
+        out = 0.0
+        if sd is not None:  # shared directions: the weights are in `sl`
+            out = out + part(sd, None, sl, vv_is)
+        if disks is not None:
+            if shared is None:  # with visibility, every pixel's own nodes were ray-cast
+                out = out + per_pixel()
+            else:  # a chunk where no horizon cuts a disk takes the shared nodes (one matrix product, no trigonometry)
+                out = out + jax.lax.cond(jnp.any(cut_), per_pixel, lambda: part(shared[0], None, shared[1], None))
+        return out
+
+    # the disks' per-azimuth arrays of every pixel, made here, before the loop over chunks: inside it, XLA:CPU
+    # would fuse them (arctangents and all) into each node's computation
+    az = cut = order = None
+    if disks is not None:
+        az = _azimuths(n, disks, nodes).reshape(npx, -1)
+        if shared is not None:  # the pixels whose horizon cuts a disk first, so that most chunks have none or all
+            cut = _horizon_cuts_a_disk(n, v, disks)
+            order = jnp.argsort(~cut, stable=True)
+            cut = cut[order][:, None]
+    arrs = [None if a is None else (a if order is None else a[order]) for a in (n, v, kd, ks, vis, vis_disk, az)]
+    arrs = [None if a is None else jnp.pad(a, ((0, pad), (0, 0))) for a in arrs + [cut]]
     if pad == 0 and npx <= chunk:
-        return one_chunk(arrs)
-    nch = arrs[0].shape[0] // size
-    res = jax.lax.map(one_chunk, tuple(None if a is None else a.reshape(nch, size, -1) for a in arrs))
-    return res.reshape(-1, res.shape[-1])[:npx]
+        res = one_chunk(arrs)
+    else:
+        nch = arrs[0].shape[0] // size
+        res = jax.lax.map(one_chunk, tuple(None if a is None else a.reshape(nch, size, -1) for a in arrs))
+        res = res.reshape(-1, res.shape[-1])[:npx]
+    return res if order is None else jnp.zeros_like(res).at[order].set(res)

@@ -307,6 +307,22 @@ def test_directional_visibility_wall(floor_wall):
     np.testing.assert_array_equal(v, [[1.0]])
 
 
+def test_directional_visibility_per_point_directions(floor_wall):
+    """`(N, J, 3)` directions: each point its own set (the reference renderer's disk nodes), the same rays as the
+    shared `(J, 3)` form where they coincide; a wrong leading size is a ValueError naming `directions`."""
+    pts = np.array([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0]])
+    nrm = np.array([[0.0, 0.0, 1.0]] * 2)
+    dirs = unit([[-1.0, 0.0, 0.5], [1.0, 0.0, 0.5], [0.0, 0.0, 1.0], [0.3, 0.0, -1.0]])
+    shared = np.asarray(jaxsh.directional_visibility(floor_wall, pts, nrm, dirs))
+    per = np.asarray(jaxsh.directional_visibility(floor_wall, pts, nrm, np.stack([dirs, dirs])))
+    np.testing.assert_array_equal(per, shared)
+    # point 0 looks towards the wall with its first direction, point 1 away from it: [behind, lit]
+    own = np.stack([dirs[[0, 1]], dirs[[1, 0]]])
+    np.testing.assert_array_equal(jaxsh.directional_visibility(floor_wall, pts, nrm, own), [[0, 1], [0, 1]])
+    with pytest.raises(ValueError, match="directions"):
+        jaxsh.directional_visibility(floor_wall, pts, nrm, np.stack([dirs] * 3))
+
+
 def test_reflected_visibility_wall(floor_wall):
     pts = np.array([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
     nrm = np.array([[0.0, 0.0, 1.0]] * 3)
