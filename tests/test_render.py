@@ -117,6 +117,26 @@ def test_reference_disk_cut_by_the_horizon(cos_o, azimuth, elevation):
     assert abs(float(default[0, 0]) / want - 1.0) < 3e-5
 
 
+def test_reference_hemisphere_and_sphere_disks_closed_form():
+    """Lambertian (K_d = 1) under a disk of radiance 1 and radius pi/2 (a hemisphere, centre c): the irradiance is
+    (pi/2)(1 + n.c) (two hemispheres meeting at an angle); under the whole sphere (radius pi) it is pi. Every such
+    pixel's horizon cuts the disk, so these are the clipped per-pixel rules at their largest. The sphere takes 192
+    azimuths: where the horizon passes near the centre (|n.c| = 0.14 to 0.19 here) the cut radius swings from ~0 to
+    ~pi over a few azimuths, and 96 of them left 1.6e-10 to 2.2e-9 (192: 6e-15)."""
+    rng = np.random.default_rng(11)
+    n = rng.normal(size=(12, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + 0.3 * rng.normal(size=(12, 3))  # seen: n.v > 0
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    assert np.all(np.sum(n * v, 1) > 0)
+    c = np.array([0.2, -0.5, 0.84]) / np.linalg.norm([0.2, -0.5, 0.84])
+    half = jaxsh.render_reference(n, v, 1.0, 0.0, None, 0.2, disks=(c[None], np.array([np.pi / 2]), np.ones((1, 1))))
+    np.testing.assert_allclose(np.asarray(half)[:, 0], 0.5 * np.pi * (1.0 + n @ c), rtol=1e-12)
+    full = jaxsh.render_reference(n, v, 1.0, 0.0, None, 0.2, disks=(c[None], np.array([np.pi]), np.ones((1, 1))),
+                                  disk_nodes=(48, 192))
+    np.testing.assert_allclose(np.asarray(full)[:, 0], np.pi, rtol=1e-12)
+
+
 def test_reference_disk_rules_agree_where_no_horizon_cuts():
     """A chunk of pixels none of whose horizons cuts a disk takes the rule shared by every pixel (one matrix
     product); a chunk with such a pixel takes each pixel's own clipped rule. Where no horizon cuts, the two rules
