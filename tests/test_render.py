@@ -103,7 +103,7 @@ def test_reference_disk_cut_by_the_horizon(cos_o, azimuth, elevation):
 
     Measured: at `disk_nodes=(48, 192)` within 1e-10 in every case; at the default (48, 96) within 1.5e-5 (the
     lobe at azimuth 0.7 wants more azimuths: 1.4e-6 at 128, 8e-11 at 192). With nodes shared by every pixel, as
-    before, the error was 1.2e-3 to 4e-3 at (48, 192) and did not fall below 1e-4 as the nodes were refined."""
+    before, these four cases erred by 1.2e-3, 9.8e-4, 9.7e-6 and 4.3e-5 at (48, 192)."""
     sigma, radius, kd = 0.15, 1.2, 0.2
     n = np.array([0.0, 0.0, 1.0])
     so = np.sqrt(1.0 - cos_o**2)
