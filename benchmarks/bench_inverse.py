@@ -484,6 +484,24 @@ def scipy_factorize(n, v, b, sub_idx, lmax):
 # =========================================================================== capture, timing, main
 
 
+def _renderer_digest() -> str:
+    """A digest of the sources that render the capture, for its cache file's name: a capture cached by another
+    version of the reference renderer (or of the synthetic sphere) is rendered again, not silently reused (the
+    key was the material and the noise alone, so captures from a former renderer were read as current)."""
+    import hashlib
+
+    import jaxsh._reference_pairs
+    import jaxsh._reflectance
+    import jaxsh._render
+    import solvers.synthetic._sphere
+
+    h = hashlib.sha1()
+    for mod in (jaxsh._render, jaxsh._reference_pairs, jaxsh._reflectance, solvers.synthetic._sphere):
+        with open(mod.__file__, "rb") as f:
+            h.update(f.read())
+    return h.hexdigest()[:12]
+
+
 def make_capture(size, cache_dir):
     brdf = solvers.TorranceSparrow(jnp.asarray(KD), jnp.asarray(KS), jnp.asarray(MU), jnp.asarray(SIGMA))
     disks, directional = solvers.default_sources()
@@ -492,7 +510,7 @@ def make_capture(size, cache_dir):
     path = None
     if cache_dir:
         tag = "_".join(f"{x:g}" for x in (*KD, *KS, MU, SIGMA, NOISE))
-        path = os.path.join(cache_dir, f"sphere{size}_{tag}.npz")
+        path = os.path.join(cache_dir, f"sphere{size}_{tag}_{_renderer_digest()}.npz")
     if path and os.path.exists(path):
         images = list(np.load(path)["images"])
         print(f"capture: {path} (cached)")
