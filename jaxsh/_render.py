@@ -667,22 +667,17 @@ def _disk_nodes_jit(n, disks, nodes):
 
 def _disk_shared_nodes(disks, nodes):
     """The rule of `_disk_azimuths` / `_disk_nodes_at` where no pixel's horizon cuts the disk (the same for every
-    pixel there: radial nodes on [0, R], uniform azimuths): directions `(K n_θ n_φ, 3)` and the radiance times the
-    weight `(K n_θ n_φ, C)`, in the order of `_disk_nodes`."""
-    dt = disks[0].dtype
-    x, w = np.polynomial.legendre.leggauss(nodes[0])
-    phi = jnp.asarray(2 * np.pi * (np.arange(nodes[1]) + 0.5) / nodes[1], dt)
+    pixel there: radial nodes on [0, R], uniform azimuths), made by them at the normal along the disk's centre:
+    directions `(K n_θ n_φ, 3)` and the radiance times the weight `(K n_θ n_φ, C)`, in the order of `_disk_nodes`.
+    (A disk of radius ≥ π/2 is cut by every seen pixel's horizon, `_horizon_cuts_a_disk`, so its shared rule, then
+    clipped at the centre's own horizon, is never used.)"""
     dirs, wts = [], []
     for k in range(disks[0].shape[0]):
-        c, radius = disks[0][k], disks[1][k]
-        t, b = tangent_frame(c)
-        h = 0.5 * radius
-        cu, su = _cos_sin_small(h * jnp.asarray(x, dt))
-        cr, sr = jnp.cos(h) * cu - jnp.sin(h) * su, jnp.sin(h) * cu + jnp.cos(h) * su  # r = h + h x, (n_theta,)
-        e = jnp.cos(phi)[:, None] * t[None, :] + jnp.sin(phi)[:, None] * b[None, :]  # (n_phi, 3)
-        dirs.append((cr[:, None, None] * c[None, None, :] + sr[:, None, None] * e[None, :, :]).reshape(-1, 3))
-        wk = h * sr[:, None] * jnp.asarray(w, dt)[:, None] * jnp.full((1, nodes[1]), 2 * np.pi / nodes[1], dt)
-        wts.append(wk.reshape(-1, 1) * disks[2][k][None, :])
+        c = disks[0][k]
+        az = _disk_azimuths(c[None], c, disks[1][k], nodes[1], c.dtype)
+        d, w = _disk_nodes_at(az, c, nodes[0], c.dtype)
+        dirs.append(jnp.stack([x[0] for x in d], axis=-1))
+        wts.append(w[0][:, None] * disks[2][k][None, :])
     return jnp.concatenate(dirs, 0), jnp.concatenate(wts, 0)
 
 
