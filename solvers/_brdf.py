@@ -44,7 +44,7 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._jacobian import explicit_jacobian
-from ._normal_equations import (covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared_nonneg,
+from ._normal_equations import (covariance_from_gram, covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared_nonneg,
                                 solve_sym2_min_norm)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
@@ -180,6 +180,42 @@ def _no_specular_signal(ks, se_ks, s_unit, b, w, texel, und_ks=None):
     spec = jnp.sum(w[:, None] * (ks_pix * s_unit) ** 2, 0)
     data = jnp.sum(w[:, None] * b * b, 0)
     return ~jnp.any(sig & (spec > jnp.finfo(dt).eps * data))
+
+
+def _gram_homogeneous(terms, D, S, ks, w, mu, sigma, fresnel: bool):
+    """$J^TJ$ `(2C + 2, 2C + 2)` of the weighted residual $\\sqrt{w}\\,(K_d D + K_s S_{\\mu,\\sigma} - b)$ in
+    $(K_d, K_s, \\mu, \\sigma)$ (homogeneous fits; the μ row and column are 0 without Fresnel), summed from
+    the `(N, C)` images without forming the `(N C, 2C + 2)` Jacobian.
+
+    Its columns are $\\sqrt{w}\\,D_c$ and $\\sqrt{w}\\,S_c$ on channel $c$'s rows, and
+    $\\sqrt{w}\\,K_{s,c}\\,\\partial S_c$ for μ and σ, whose two derivatives come from one forward-mode pass
+    over `terms.specular_unit` (its band table contracted once per derivative). Forming the Jacobian by
+    `jax.jacfwd` of the residual (eight tangents, a 24 MB `(N C, 8)` array at 3 × 256²) and multiplying it took
+    ~40 ms of a warm `fit_brdf`; these sums take ~10 ms (docs/performance.md, twenty-sixth round).
+    """
+    dt = D.dtype
+    c = D.shape[1]
+    m0 = mu if fresnel else jnp.ones((), dt)
+
+    def spec(m, s_):
+        return terms.specular_unit(m if fresnel else None, s_, check=False)
+
+    eye = jnp.eye(2, dtype=dt)
+    dS = jax.vmap(lambda t: jax.jvp(spec, (m0, sigma), (t[0], t[1]))[1])(eye)  # (2, N, C): d/dmu, d/dsigma
+    ws = w[:, None]
+    a_mu, a_sig = ks[None, :] * dS[0], ks[None, :] * dS[1]
+    dd, ds, ss = jnp.sum(ws * D * D, 0), jnp.sum(ws * D * S, 0), jnp.sum(ws * S * S, 0)
+    cross = jnp.stack([jnp.sum(ws * D * a_mu, 0), jnp.sum(ws * S * a_mu, 0),
+                       jnp.sum(ws * D * a_sig, 0), jnp.sum(ws * S * a_sig, 0)])  # (4, C)
+    mm, ms_, qq = jnp.sum(ws * a_mu * a_mu), jnp.sum(ws * a_mu * a_sig), jnp.sum(ws * a_sig * a_sig)
+    diag = jnp.diag
+    kk = jnp.block([[diag(dd), diag(ds)], [diag(ds), diag(ss)]])  # (2C, 2C)
+    kp = jnp.stack([jnp.concatenate([cross[0], cross[1]]), jnp.concatenate([cross[2], cross[3]])], 1)  # (2C, 2)
+    pp = jnp.stack([jnp.stack([mm, ms_]), jnp.stack([ms_, qq])])
+    g = jnp.block([[kk, kp], [kp.T, pp]])
+    if not fresnel:
+        g = g.at[2 * c, :].set(0.0).at[:, 2 * c].set(0.0)
+    return g
 
 
 def _model(terms, kd, ks, mu, sigma, texel):
@@ -479,18 +515,11 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
 
     if textured is None:
         c = b.shape[1]
-
-        def resid_nat(th):
-            _, mu_, sigma_ = nat_params(th)
-            return (sw * (_model(terms, th[:c], th[c : 2 * c], mu_, sigma_, texel) - b)).reshape(-1)
-
-        th = jnp.concatenate([kd, ks, jnp.stack([mu if fresnel else jnp.zeros((), dt), sigma])])
-        J = jax.jacfwd(resid_nat)(th)
-        if not fresnel:
-            J = J.at[:, 2 * c].set(0.0)
+        g = _gram_homogeneous(terms, d_fin, s_fin, ks, w, mu, sigma, fresnel)
         # a parameter held at its bound is not estimated: zero column -> infinite standard error
-        J = J.at[:, 2 * c].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 2 * c + 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
-        cov, se = covariance_from_jacobian(J, rss, nobs, J.shape[1] - (0 if fresnel else 1))
+        keep = jnp.ones(2 * c + 2, dt).at[2 * c].set(jnp.where(bound_mu | (not fresnel), 0.0, 1.0))
+        keep = keep.at[2 * c + 1].set(jnp.where(bound_sigma, 0.0, 1.0))
+        cov, se = covariance_from_gram(g * keep[:, None] * keep[None, :], rss, nobs, 2 * c + (2 if fresnel else 1))
         std = TorranceSparrow(se[:c], se[c : 2 * c], se[2 * c] if fresnel else None, se[2 * c + 1])
         counts = None
     else:

@@ -23,7 +23,7 @@ problem of the solvers goes through here:
   $(K_d, K_s)$ eliminations of `fit_brdf` (per channel, per texel, and the
   Schur complement of one shared $K_s$ with a $K_d$ per texel, unconstrained and nonnegative:
   Newton steps on its active set in a `while_loop`).
-- `covariance_from_jacobian`: $\\mathrm{cov} = s^2 (J^TJ)^{+}$,
+- `covariance_from_jacobian` (and `covariance_from_gram`, from $J^TJ$): $\\mathrm{cov} = s^2 (J^TJ)^{+}$,
   $s^2 = \\mathrm{RSS}/(n - p)$, with undetermined directions flagged.
 
 **No LAPACK inside loops.** jaxlib runs Cholesky/LU/eigh as LAPACK custom
@@ -412,12 +412,18 @@ def covariance_from_jacobian(J, rss, nobs, n_par):
     those directions (or with a zero column) is undetermined and gets an
     infinite standard error. Returns `(cov, se)`.
     """
-    dt = J.dtype
-    norms = jnp.sqrt(jnp.sum(J * J, axis=0))
+    return covariance_from_gram(J.T @ J, rss, nobs, n_par)
+
+
+def covariance_from_gram(g, rss, nobs, n_par):
+    """`covariance_from_jacobian` from the Gram matrix $G = J^TJ$ `(p, p)` (for callers that sum it without
+    forming $J$): the scaling $D = \\mathrm{diag}(G)^{1/2}$, $\\tilde J^T\\tilde J = D^{-1}GD^{-1}$, the same rank
+    rule and the same standard errors."""
+    dt = g.dtype
+    norms = jnp.sqrt(jnp.clip(jnp.diagonal(g), 0.0))
     zero = norms <= jnp.finfo(dt).tiny
     d = jnp.where(zero, 1.0, norms)
-    js = J / d[None, :]
-    jtj = js.T @ js
+    jtj = g / (d[:, None] * d[None, :])
     s2 = rss / jnp.maximum(nobs - n_par, 1.0)
     evals, evecs = jnp.linalg.eigh(jtj)
     tiny = evals <= jnp.finfo(dt).eps * jnp.max(evals) * jtj.shape[0]
