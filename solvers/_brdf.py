@@ -191,7 +191,7 @@ def _gram_homogeneous(terms, D, S, ks, w, mu, sigma, fresnel: bool):
     $\\sqrt{w}\\,K_{s,c}\\,\\partial S_c$ for μ and σ, whose two derivatives come from one forward-mode pass
     over `terms.specular_unit` (its band table contracted once per derivative). Forming the Jacobian by
     `jax.jacfwd` of the residual (eight tangents, a 24 MB `(N C, 8)` array at 3 × 256²) and multiplying it took
-    ~40 ms of a warm `fit_brdf`; these sums take ~10 ms (docs/performance.md, twenty-sixth round).
+    40–47 ms with the covariance; these sums take 13–15 ms (docs/performance.md, twenty-sixth round).
     """
     dt = D.dtype
     c = D.shape[1]
