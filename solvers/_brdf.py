@@ -44,8 +44,8 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._jacobian import explicit_jacobian
-from ._normal_equations import (covariance_from_gram, covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2, solve_grouped_shared_nonneg,
-                                solve_sym2_min_norm)
+from ._normal_equations import (covariance_from_gram, covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2,
+                                solve_grouped_shared_nonneg, solve_sym2_min_norm)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
@@ -509,10 +509,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
     bound_mu = at_bound[0] if fresnel else jnp.asarray(False)
     bound_sigma = at_bound[-1]
 
-    # Standard errors from the Jacobian in natural parameters.
-    def nat_params(th):
-        return th[:-2], (th[-2] if fresnel else None), th[-1]
-
+    # Standard errors from the Jacobian in natural parameters (K_d, K_s, mu, sigma).
     if textured is None:
         c = b.shape[1]
         g = _gram_homogeneous(terms, d_fin, s_fin, ks, w, mu, sigma, fresnel)
