@@ -89,6 +89,14 @@ def test_specular_unit_sigma_derivatives_match_the_closed_form(terms):
     d_mu = (_np_fresnel(np.asarray(terms.cos_o), MU + hmu) - _np_fresnel(np.asarray(terms.cos_o), MU - hmu)) / (2 * hmu)
     np.testing.assert_allclose(np.asarray(tang[0]), d_mu[:, None] * br, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(np.asarray(tang[1]), d_want, rtol=1e-9, atol=1e-10)
+    # batched over sigma (a vmap of the primal and of its derivative)
+    sig2 = jnp.asarray([SIGMA, 2 * SIGMA])
+    vals = jax.vmap(lambda s: spec(MU, s))(sig2)
+    ders = jax.vmap(jax.jacfwd(lambda s: spec(MU, s)))(sig2)
+    for k, s in enumerate((SIGMA, 2 * SIGMA)):
+        b2, db2, _ = _np_parts(terms, s)
+        np.testing.assert_allclose(np.asarray(vals[k]), f * b2, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(ders[k]), f * db2, rtol=1e-9, atol=1e-10)
 
 
 def test_specular_unit_derivative_through_the_band_table(terms):
