@@ -165,8 +165,10 @@ class FactorizationResult(Solution):
       (`max_steps_reached` when the σ grids stop wider than the tolerance),
       `nonfinite`, `no_signal` and the status of stage 1's eq.-25 solve at the
       final μ (the same lighting unknowns: `ill_conditioned` when the pixels do
-      not determine them); without it, the status of that solve (as
-      `inverse_lighting`).
+      not determine them; with `lighting_method="dual"`, the worse of the dual
+      stage 1's status and that of eq. 25's solve from the refinement's blocks);
+      without it, the status of that solve (as `inverse_lighting`; with
+      `"dual"`, `inverse_lighting_dual`'s).
     - Bad options are `ValueError`s naming them: `search_pixels` below
       $(l^*+1)^2 + 4$, `rtol`/`atol` not finite ≥ 0, a `key` that is no PRNG
       key, a `region` that is not `(direction (3,), radius in (0, π])`.
@@ -949,8 +951,14 @@ def factorize(
         stats["num_steps_bisection"] = src.num_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
                   rows_obs, perm)
-    ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted = out
-    kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2, res1.status)
+    ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted, bl_final = out
+    st1 = res1.status
+    if dual is not None:
+        # the refinement solves for the eq.-25 lighting (plus the source), whose determinacy the dual stage 1's
+        # status does not report (its texels are free unknowns, the uncovered ones the l <= 2 field): one valid
+        # pixel came back `converged`
+        st1 = _eq25_status(bl_final, ks, lmax, rcond, st1)
+    kd, status, iterations = _final_status(ks, sigma, rms, data_ss, st_nm, its1, its2, st1)
     brdf = TorranceSparrow.unchecked(kd, ks, mu, sigma)
     se_mu = None
     if mu is not None:
@@ -1330,7 +1338,8 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax, rows_fs=None):
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None,
             rows_obs=None, perm=None):
-    """The joint refinement; `blocks`: the eq.-25 blocks at `mu` on `obs` and on `sub` (None: formed here);
+    """The joint refinement (`_refine_final`'s values, then the all-pixel blocks it used); `blocks`: the eq.-25
+    blocks at `mu` on `obs` and on `sub` (None: formed here);
     `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None; `rows_obs`: the
     eq.-25 rows at `mu` of the pixels outside the subset (`_all_pixel_blocks` with the subset first), or None (all
     rows formed here); `perm`: `_subset_first`'s orders, given with `rows_obs` (the refinement on all pixels then
@@ -1351,7 +1360,17 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     else:
         jt = _joint_jit(obs, bl_obs, mu, lmax, chunk, rcond, column)
         perm = None
-    return _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples, None if perm is None else perm[3])
+    out = _refine_final(jt, ks, sigma, mu, d, lmax, status, its, obs.n_samples, None if perm is None else perm[3])
+    return out + (jt.bl,)
+
+
+@jaxsh.jit
+def _eq25_status(bl: _Blocks, ks, lmax: int, rcond, status):
+    """The worse of `status` and that of eq. 25's lighting solve (`lighting_from_gram`) from the blocks `bl` (the
+    first of a batch) at the BRDF `ks` ($K_d = 1 - K_s$): `ill_conditioned` where the pixels do not determine the
+    lighting."""
+    g = (_first(bl) if bl.g.dd.ndim == 3 else bl).g
+    return worst(status, lighting_from_gram(g, 1.0 - ks, ks, lmax, 0.0, rcond).status)
 
 
 def _joint_window(t1):
