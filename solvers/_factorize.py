@@ -663,13 +663,16 @@ def factorize(
       there once).
       `False`: stage 1's $\\mu$ (R&H's algorithm). With `lighting_method="sh"`
       on either path (a `MirrorTable` of the search subset, or direct sums
-      when the subset is too large for one); with `"dual"` by direct sums,
-      from the source found on the dual image (its direction from the image's
-      SH projection, `_dual_source`), and stage 1 and the source are then
-      redone on the dual image at the new $\\mu$. On 3-view spheres under a
-      sun (`sphere_capture`, $K_s/(K_d+K_s)$ 0.6 / 0.7 / 0.8, μ 1.6, σ 0.12,
-      $l^*$ = 12, 1 % noise) the dual path's μ was 1.21 at 32² and 1.45 at
-      64² with stage 1's, and 1.589 and 1.594 with this search.
+      when the subset is too large for one); with `"dual"` the same (a table
+      of the subset is then made for it), from the source found on the dual
+      image (its direction from the image's SH projection, `_dual_source`),
+      and stage 1 and the source are then redone on the dual image at the new
+      $\\mu$. On 3-view spheres under a sun (`sphere_capture`,
+      $K_s/(K_d+K_s)$ 0.6 / 0.7 / 0.8, μ 1.6, σ 0.12, $l^*$ = 12, 1 % noise)
+      the dual path's μ was 1.21 at 32² and 1.45 at 64² with stage 1's, and
+      1.589 and 1.594 with this search; on `bench_inverse.py`'s capture
+      (3 × 256², truth μ 1.6) 1.329 and 1.590 ($K_s$ 15 % low and within 2 %),
+      at 1.19 s against 0.58 s warm (first calls 11.1 s and 9.7 s).
     - `search_pixels`: the searches use a random subset of this many pixels
       (None: all); the final solve uses all pixels. `key`: PRNG key (default
       `jax.random.PRNGKey(0)`); the subset is NumPy's
@@ -785,7 +788,7 @@ def factorize(
     curv_rss = None
     tab = None
     if fresnel:
-        if lighting_method == "sh" and sub.n_samples * ((2 * lmax + 1) ** 2 + (lmax + 1) ** 2) * 8 <= _TABLE_BYTES:
+        if lighting_method == "sh" and _table_fits(sub, lmax):
             tab = _mirror_table_jit(sub, lmax)
 
         def evaluate(t):  # the profiled relative RSS at the 9 values of `t`: one batch, one compiled program
@@ -927,9 +930,16 @@ def factorize(
         # the same search by direct sums (a search subset too large for a `MirrorTable`, or the dual path, whose
         # source came from the dual image), then stage 1 and the source again at the new mu (`_stage1_final` and
         # `find_source`, or the dual stage 1 and eq. 26 on its image, as above on each path)
-        jt1 = _joint_jit(sub, None, mu, lmax, chunk, rcond, None)
+        if dual is not None and _table_fits(sub, lmax):
+            # the dual path's search on the joint model from the subset's `MirrorTable`, as on the SH path (by
+            # direct sums it took 1.45 s of a warm 2.5 s call on `bench_inverse.py`'s capture)
+            tab = _mirror_table_jit(sub, lmax)
+            jt1 = _joint_from_table(sub, tab, _mu_blocks(tab, jax.device_put(np.full((9,), np.asarray(mu))), lmax,
+                                                         rcond), mu, lmax, _K0())
+        else:
+            jt1 = _joint_jit(sub, None, mu, lmax, chunk, rcond, None)
         column = _source_column(jt1, sub.fast_visibility, mu, ks, src.direction, src.sigma, lmax)
-        t2, c2, n_mu = _joint_mu_search(sub, None, lmax, best, ks, src.direction, src.sigma,
+        t2, c2, n_mu = _joint_mu_search(sub, tab, lmax, best, ks, src.direction, src.sigma,
                                         min(int(max_steps), _MU_JOINT_SIGMA_GRIDS), rtol, atol, rcond, column, chunk)
         curv_rss = None if c2 is None else c2 * float(_weighted_energy(sub.weights, sub.values)) * n_pos / (
             n_pos if sub is obs else sub.n_samples)  # (as on the table path above)
@@ -947,6 +957,8 @@ def factorize(
             dual, res1 = _dual_stage1(obs, ks, mu, 2 * dual_height, lmax, rcond)
             filtered = res1.coeffs
             src = _dual_source(dual, filtered, region, dual_height, dt, True)
+            if tab is not None:  # the refinement's subset rows from the table too, at the new mu
+                blocks = (None, _mu_blocks(tab, jax.device_put(np.full((9,), np.asarray(mu))), lmax, rcond))
         stats["num_steps_golden"], stats["n_obs"] = golden_steps, res1.stats["n_obs"]
         stats["num_steps_bisection"] = src.num_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
@@ -1035,6 +1047,12 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
 # `factorize` searches mu on a `MirrorTable` of the subset when it takes at most this many bytes (40,000 samples at
 # l* = 12: 254 MB), otherwise by `accumulate_gram` per candidate (`_mu_candidates`)
 _TABLE_BYTES = 512 * 2**20
+
+
+def _table_fits(o: Observations, lmax: int) -> bool:
+    """Whether the `MirrorTable` of `o` (harmonics to degree 2 `lmax` and, contiguous, to `lmax`) fits
+    `_TABLE_BYTES`."""
+    return o.n_samples * ((2 * lmax + 1) ** 2 + (lmax + 1) ** 2) * 8 <= _TABLE_BYTES
 
 
 @jaxsh.jit
