@@ -837,7 +837,7 @@ def factorize(
         # rounds' batch) from the table when it holds all pixels, else from one pass over all pixels, which also
         # makes their rows for the refinement; then the same batched golden search. The subset's blocks at mu,
         # for the refinement, come from the rounds' program too.
-        mu9 = jax.device_put(np.full((9,), np.asarray(mu)))
+        mu9 = _nine(mu)
         # with the joint mu search to come, stage 1 and its source are redone on all pixels at the mu it finds:
         # here they only start it, from the subset's blocks (the all-pixel pass at this mu was 0.23 s, wasted)
         joint_mu = refine and find_sigma and refine_mu and mu is not None
@@ -914,7 +914,7 @@ def factorize(
         stats["num_mu_candidates"] = jax.device_put(its1)
         best = t2
         mu = jax.device_put(np.asarray(1.0 + np.exp(t2), dt))
-        mu9 = jax.device_put(np.full((9,), np.asarray(mu)))
+        mu9 = _nine(mu)
         if sub is obs:
             blocks = (_mu_blocks(tab, mu9, lmax, rcond),) * 2
         else:
@@ -934,8 +934,7 @@ def factorize(
             # the dual path's search on the joint model from the subset's `MirrorTable`, as on the SH path (by
             # direct sums it took 1.45 s of a warm 2.5 s call on `bench_inverse.py`'s capture)
             tab = _mirror_table_jit(sub, lmax)
-            jt1 = _joint_from_table(sub, tab, _mu_blocks(tab, jax.device_put(np.full((9,), np.asarray(mu))), lmax,
-                                                         rcond), mu, lmax, _K0())
+            jt1 = _joint_from_table(sub, tab, _mu_blocks(tab, _nine(mu), lmax, rcond), mu, lmax, _K0())
         else:
             jt1 = _joint_jit(sub, None, mu, lmax, chunk, rcond, None)
         column = _source_column(jt1, sub.fast_visibility, mu, ks, src.direction, src.sigma, lmax)
@@ -958,7 +957,7 @@ def factorize(
             filtered = res1.coeffs
             src = _dual_source(dual, filtered, region, dual_height, dt, True)
             if tab is not None:  # the refinement's subset rows from the table too, at the new mu
-                blocks = (None, _mu_blocks(tab, jax.device_put(np.full((9,), np.asarray(mu))), lmax, rcond))
+                blocks = (None, _mu_blocks(tab, _nine(mu), lmax, rcond))
         stats["num_steps_golden"], stats["n_obs"] = golden_steps, res1.stats["n_obs"]
         stats["num_steps_bisection"] = src.num_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
@@ -1047,6 +1046,11 @@ def _mu_candidates(sub, t, lmax, chunk, rcond):
 # `factorize` searches mu on a `MirrorTable` of the subset when it takes at most this many bytes (40,000 samples at
 # l* = 12: 254 MB), otherwise by `accumulate_gram` per candidate (`_mu_candidates`)
 _TABLE_BYTES = 512 * 2**20
+
+
+def _nine(mu):
+    """Nine copies of `mu` on the device: the batch of `_mu_blocks`' μ rounds, so that one μ reuses their program."""
+    return jax.device_put(np.full((9,), np.asarray(mu)))
 
 
 def _table_fits(o: Observations, lmax: int) -> bool:
