@@ -1216,6 +1216,22 @@ def _check_albedo(albedo):
         raise ValueError(f"`albedo` must be an RGB map of shape (H, W, 3) over (x, y) in [0, 1]^2, got {shape}")
 
 
+def _nonneg_albedo(med):
+    """The median albedo map with the library's nonnegativity (as `fit_brdf`'s $K_d \\ge 0$): medians $\\le 0$ (noise
+    on dark pixels, a component image of the wrong sign) are 0; positive ones at least $10^{-6}$ of the largest, so
+    that $r_k / a_k$ stays bounded. A pixel a little below zero used to be raised to that floor: its diffuse samples
+    divided by it were $\\sim 10^6$ times the data, and the $d_k$ fit through them was garbage (relative RMS 1,219 on
+    a capture whose clean fit has 0.071, `converged`)."""
+    pos = med > 0
+    floor = 1e-6 * np.max(med, initial=0.0)
+    return np.where(pos, np.maximum(med, floor), 0.0)
+
+
+def _pos(values):
+    """$\\max(v, 0)$ in float64 NumPy: the RBF components as `render` evaluates them (`_dichromatic_rows`)."""
+    return np.maximum(np.asarray(values, np.float64), 0.0)
+
+
 def _fill(amap):
     """Replace NaN texels (never observed) by the per-channel median of the observed ones."""
     med = np.nanmedian(amap.reshape(-1, amap.shape[-1]), axis=0)
@@ -1320,7 +1336,11 @@ def fit_dichromatic(
     `lights`, `xy`, `irradiance`, `mask` as in `reflectance_samples`.
     `irradiance` is a scalar or `(L,)`: one $E$ per light, finite and
     $> 0$ (the colour of each source is `colors`).
-    Pixels never lit keep the median albedo of the others. `throw=True`
+    Pixels never lit keep the median albedo of the others. The albedo is
+    nonnegative (as `fit_brdf`'s $K_d$): a median $\\le 0$ (noise on a dark
+    pixel) gives 0, and the diffuse samples of a pixel with albedo 0 in every
+    channel are left out of the $d_k$ fit (docs/sharing.md, "Diffuse samples
+    below zero"). `throw=True`
     raises `SolveError` unless the status is `converged`; a `tol` keyword
     applies to both fits, and the status is the worse of theirs
     (`tolerance_not_reached` when either residual is above `tol`), an
@@ -1355,15 +1375,16 @@ def fit_dichromatic(
     albedo = np.full((h * w, 3), np.nan)
     cols = np.nonzero(seen[:, 0])[0]
     albedo[cols] = np.nanmedian(stack[:, cols], axis=0)
-    albedo = albedo.reshape(h, w, 3)
-    albedo = _fill(albedo)
-    albedo = np.maximum(albedo, 1e-6 * np.max(albedo))
+    albedo = _nonneg_albedo(_fill(albedo.reshape(h, w, 3)))
     a_s = albedo.reshape(-1, 3)[np.asarray(ds.pixel)]
-    # black images: a zero albedo map; the samples are then 0 (no signal), not 0/0
+    # a zero albedo (black images, pixels whose median sample is <= 0) determines no d_k: 0 for such a channel,
+    # not 0/0; a sample whose every channel has albedo 0 is left out of the d_k fit (its prediction is 0 whatever d_k)
     dvals = np.divide(np.asarray(ds.values), a_s, out=np.zeros(a_s.shape), where=a_s > 0)
+    informs = np.any(a_s > 0, axis=1)
+    d_rows = np.nonzero(informs)[0] if np.any(informs) else np.arange(a_s.shape[0])
     sc = jnp.asarray([m_xy, m_xy, 1.0, 1.0, m_w])
-    dfit = fit_sharing(ds.points, dvals, n_centers_diffuse, scale=sc, smoothing=smoothing, key=key,
-                       weights=ds.cos_i, **kwargs)
+    dfit = fit_sharing(np.asarray(ds.points)[d_rows], dvals[d_rows], n_centers_diffuse, scale=sc, smoothing=smoothing,
+                       key=key, weights=np.asarray(ds.cos_i)[d_rows], **kwargs)
     spec = np.sum(simg * s[:, None, None, :], -1) / (np.sum(s * s, -1) * e)[:, None, None]
     ss = reflectance_samples(spec, normal, view, lights, 1.0, mask, xy, min_cos=min_cos)
     gfit = fit_sharing(ss.points, ss.values[:, 0], n_centers_specular, scale=sc, smoothing=smoothing, key=key,
@@ -1371,8 +1392,9 @@ def fit_dichromatic(
     # rms / rel_rms in the images' units: I - s_k E cos(theta_i) (a_k d_k or g) at the samples of each image
     es = s * e[:, None]  # (L, 3)
     di, dp, si, sp = (np.asarray(a) for a in (ds.image, ds.pixel, ss.image, ss.pixel))
-    d_pred = es[di] * np.asarray(ds.cos_i, np.float64)[:, None] * a_s * np.asarray(dfit(ds.points), np.float64)
-    g_pred = es[si] * (np.asarray(ss.cos_i, np.float64) * np.asarray(gfit(ss.points), np.float64))[:, None]
+    # the model as `render` evaluates it: max(d_k, 0), max(g, 0)
+    d_pred = es[di] * np.asarray(ds.cos_i, np.float64)[:, None] * a_s * _pos(dfit(ds.points))
+    g_pred = es[si] * (np.asarray(ss.cos_i, np.float64) * _pos(gfit(ss.points)))[:, None]
     residual = _radiance_residual([(dimg.reshape(nl, h * w, 3)[di, dp], d_pred),
                                    (simg.reshape(nl, h * w, 3)[si, sp], g_pred)])
     return finish(DichromaticReflectance(jnp.asarray(albedo), dfit, gfit, residual), throw)
@@ -1446,7 +1468,7 @@ def fit_one_image(
 ) -> OneImageReflectance:
     """Fit eq. 15 of Zickler 2006 from one separated image (sec. 8.4).
 
-    $a_k(\\vec x) = I_{d,k}/(s_k E\\cos\\theta_i)$ per lit pixel (unlit
+    $a_k(\\vec x) = \\max(I_{d,k}/(s_k E\\cos\\theta_i), 0)$ per lit pixel (unlit
     pixels get the median albedo); $g$ is a 4-D RBF over $\\vec q = (x, y, u, v)$
     with $M = \\mathrm{diag}(m_{xy}, m_{xy}, 1, 1)$, fitted to
     $\\sum_k I_{s,k}s_k/(E\\cos\\theta_i\\sum_k s_k^2)$.
@@ -1486,7 +1508,7 @@ def fit_one_image(
     ds = reflectance_samples(dimg[None] / (s * e), normal, view, lt, 1.0, mask, xy, min_cos=min_cos)
     albedo = np.full((h * w, 3), np.nan)
     albedo[np.asarray(ds.pixel)] = np.asarray(ds.values)
-    albedo = _fill(albedo.reshape(h, w, 3))
+    albedo = np.maximum(_fill(albedo.reshape(h, w, 3)), 0.0)  # one sample per pixel: its nonnegative LSQ albedo
     spec = np.sum(simg * s, -1) / (np.sum(s * s) * e)
     ss = reflectance_samples(spec[None], normal, view, lt, 1.0, mask, xy, min_cos=min_cos)
     pts = ss.points[:, :4]
@@ -1495,6 +1517,6 @@ def fit_one_image(
     # rms / rel_rms in the image's units: I - s_k E cos(theta_i) (a_k or g) at the samples
     dp, sp = np.asarray(ds.pixel), np.asarray(ss.pixel)
     d_pred = (s * e) * np.asarray(ds.cos_i, np.float64)[:, None] * albedo.reshape(-1, 3)[dp]
-    g_pred = (s * e) * (np.asarray(ss.cos_i, np.float64) * np.asarray(gfit(pts), np.float64))[:, None]
+    g_pred = (s * e) * (np.asarray(ss.cos_i, np.float64) * _pos(gfit(pts)))[:, None]  # max(g, 0), as `render`
     residual = _radiance_residual([(dimg.reshape(h * w, 3)[dp], d_pred), (simg.reshape(h * w, 3)[sp], g_pred)])
     return finish(OneImageReflectance(jnp.asarray(albedo), gfit, residual), throw)

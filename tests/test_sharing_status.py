@@ -9,6 +9,8 @@ equivariant under a change of the images' (or values') units.
 - a matte object (all-zero specular images) is `converged`, not `no_signal` — its zero specular part is
   exact; `no_signal` is kept for all-zero data;
 - `fit_one_image(irradiance=...)` of a bad shape is a `ValueError` naming `irradiance`;
+- diffuse samples below zero (noise on dark pixels, a channel of the wrong sign) get albedo 0, the library's
+  nonnegativity, and `rms` is that of the model `render` evaluates;
 - `fit_sharing` / `fit_homogeneous` at scale extremes (values, weights, the metric): finite `rms`/`rel_rms`
   and a finite model, never NaN.
 """
@@ -290,3 +292,72 @@ def test_fit_homogeneous_tiny_irradiance():
     np.testing.assert_allclose(float(r.rms) * e, float(base.rms), rtol=1e-9)
     tiny = solvers.fit_homogeneous(_homogeneous_samples(1e-300), 30)  # not a power of two: rounding, same size
     assert not np.isnan(float(tiny.rms)) and abs(float(tiny.rel_rms) - float(base.rel_rms)) < 0.05
+
+
+# --------------------------------------------------------------------------- defect 4: diffuse samples below zero
+
+
+def _relative_error(got, want, keep):
+    return float(np.sqrt(np.sum((got - want)[keep] ** 2) / np.sum(want[keep] ** 2)))
+
+
+def test_dichromatic_pixels_a_little_below_zero_do_not_poison_the_fit():
+    """1 % of the lit pixels at -0.002 (1 % of the mean diffuse value) in every image: their median albedo was
+    raised to the floor 1e-6 max(albedo), so their diffuse samples r/a were ~1e6 times the data, and the d_k fit
+    through them gave relative RMS 1,219 and a novel-light error of 239x the signal, status `converged`. Now
+    their albedo is 0, they are left out of the d_k fit, and everywhere else the novel light is predicted as
+    from the clean images."""
+    normal, mask, xy, a, dif, spe = _capture(WHITE)
+    lit_all = np.stack([mask & (normal @ li > 0) for li in LIGHTS]).all(0)
+    cand = np.argwhere(lit_all)
+    pick = cand[np.random.default_rng(1).choice(len(cand), len(cand) // 100, replace=False)]
+    bad = dif.copy()
+    bad[:, pick[:, 0], pick[:, 1], :] = -0.002
+    clean = solvers.fit_dichromatic(dif, spe, WHITE, normal, VIEW, LIGHTS, xy, 20, 20, mask=mask)
+    res = solvers.fit_dichromatic(bad, spe, WHITE, normal, VIEW, LIGHTS, xy, 20, 20, mask=mask)
+    assert _name(res) == "converged"
+    albedo = np.asarray(res.albedo)
+    assert np.all(albedo >= 0) and np.all(albedo[pick[:, 0], pick[:, 1]] == 0)
+    assert float(res.rel_rms) < 1.1 * float(clean.rel_rms) < 0.1
+    c = np.array([0.9, 0.4, 0.2])
+    want = _lambertian(normal, mask, _albedo(xy), NOVEL, c) + _lobe(normal, mask, NOVEL, c)
+    keep = mask & (normal @ NOVEL > 0)
+    keep[pick[:, 0], pick[:, 1]] = False
+    e_clean = _relative_error(np.asarray(clean.render(normal, VIEW, NOVEL, xy, color=c, mask=mask)), want, keep)
+    e_bad = _relative_error(np.asarray(res.render(normal, VIEW, NOVEL, xy, color=c, mask=mask)), want, keep)
+    assert e_clean < 0.06 and e_bad < 1.01 * e_clean
+
+
+def test_dichromatic_channel_of_the_wrong_sign_is_not_a_tiny_albedo():
+    """The green diffuse channel negated (a colour conversion gone wrong). Its albedo was the floor 8e-7 and d_g
+    about -1e5, whose product fitted the negative data exactly: `rel_rms` 0.073, as for the true images, while
+    `render` (max(d_k, 0)) showed green 0. Now the green albedo is 0 and `rms` is the residual of what `render`
+    evaluates, so it holds at least the green diffuse data's energy (a bound from the data alone)."""
+    normal, mask, xy, a, dif, spe = _capture(WHITE)
+    bad = dif.copy()
+    bad[..., 1] *= -1.0
+    res = solvers.fit_dichromatic(bad, spe, WHITE, normal, VIEW, LIGHTS, xy, 20, 20, mask=mask)
+    assert np.all(np.asarray(res.albedo)[..., 1] == 0) and np.all(np.asarray(res.albedo)[mask][:, [0, 2]] > 0.1)
+    lit = np.stack([mask & (normal @ li > 0) for li in LIGHTS])
+    green_ss = np.sum(bad[..., 1][lit] ** 2)
+    data_ss = np.sum(bad[lit] ** 2) + np.sum(spe[lit] ** 2)
+    assert float(res.rel_rms) ** 2 >= green_ss / data_ss * (1 - 1e-9)
+    np.testing.assert_allclose(float(res.stats["data_ss"]), data_ss, rtol=1e-9)
+
+
+def test_one_image_albedo_is_the_nonnegative_ratio():
+    """One sample per pixel: the albedo is the nonnegative least-squares value max(I_d / (s E cos), 0), computed
+    here from the images; pixels pushed below zero by noise were given a negative albedo (and `render` negative
+    radiance)."""
+    normal, mask, xy, a, dif, spe = _capture(WHITE)
+    rng = np.random.default_rng(2)
+    d = dif[1] + 0.03 * rng.normal(size=dif[1].shape) * mask[..., None]
+    cos = normal @ LIGHTS[1]
+    lit = mask & (cos > 0)
+    assert np.any(d[lit] < 0)  # the noise does push some lit samples below zero
+    res = solvers.fit_one_image(d, spe[1], WHITE[1], normal, VIEW, LIGHTS[1], xy, 20, irradiance=2.0, mask=mask)
+    want = np.maximum(d[lit] / (WHITE[1] * 2.0 * cos[lit][:, None]), 0.0)
+    np.testing.assert_allclose(np.asarray(res.albedo)[lit], want, rtol=1e-12, atol=0)
+    assert np.all(np.asarray(res.albedo) >= 0)
+    img = np.asarray(res.render(normal, VIEW, LIGHTS[1], xy, color=WHITE[1], irradiance=2.0, mask=mask))
+    assert np.all(img >= 0)
