@@ -106,6 +106,9 @@ def _free_port():
         return s.getsockname()[1]
 
 
+# Marked slow (45 s of the CI suite's 14 on 2 cores: three JAX processes, each compiling the fits): `make test-all`
+# runs it. The CI suite keeps the sharded solvers on 4 forced devices and fit_many's sharded batch (above).
+@pytest.mark.slow
 def test_two_processes_agree_with_one():
     ref = _worker("single", devices=1)
     port = _free_port()
