@@ -1268,7 +1268,7 @@ class DichromaticReflectance(Solution):
       images** (radiance): the RMS over the samples (lit pixels, images and
       channels) of both component images of $I_{d,k} - s_k E\\cos\\theta_i\\,a_k d_k(\\vec q)$
       and $I_{s,k} - s_k E\\cos\\theta_i\\,g(\\vec q)$ (the fitted $d_k$, $g$
-      before the clamp of `render`); `rel_rms` is it over the RMS of those
+      clamped at 0, as `render` evaluates them); `rel_rms` is it over the RMS of those
       image samples. So `rel_rms` does not change, and `rms` scales, when
       the images are scaled. The specular residual includes the part of
       $I_s$ not in the source colour. Built by hand from two fits
