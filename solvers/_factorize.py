@@ -118,7 +118,7 @@ from ._brdf import _AT_BOUND_TOL
 from ._data import Lighting, Observations, TorranceSparrow
 from ._host_random import host_rng
 from ._factorize_dual import _check_region_arg, _mu_candidates_dual, _stage1_final_dual, check_region, golden_ks_unit
-from ._lighting import DualLightingResult, _dual, _dual_finish, lighting_from_gram
+from ._lighting import DualLightingResult, _dual, _dual_finish, default_dual_height, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
                                 mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, worst
@@ -782,7 +782,7 @@ def factorize(
     if lighting_method == "dual" and dual_height is None:
         # from the samples of positive weight: padding (`shard_observations`, `pad_observations`) must not move the
         # grid (one padding sample took the height from 22 to 24: mu 1.454 for 1.561 on 2 devices)
-        dual_height = int(np.clip(np.floor(np.sqrt((n_pos if sub is obs else sub.n_samples) / 32.0)), 8, 64))
+        dual_height = default_dual_height(n_pos if sub is obs else sub.n_samples)
     # Stage 1: nested 1-D searches over mu (batched grid, then Chebyshev points on the best value's bracket) and
     # ks (golden, per channel).
     curv_rss = None
