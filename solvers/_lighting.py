@@ -395,8 +395,8 @@ def inverse_lighting_dual(
     round-off); `stats["lbfgsb_tol"]` is the tolerance used. At the default
     `height` it converged in 50-69 iterations on the spheres measured
     (`sphere_capture`, 3 views, 32²-128²; finer grids need more, below), and
-    the result does not depend on `maxiter` once the status is `converged`. `throw`: raise `solvers.SolveError` unless the status
-    is `converged`.
+    the result does not depend on `maxiter` once the status is `converged`.
+    `throw`: raise `solvers.SolveError` unless the status is `converged`.
 
     `height`: the lat-long grid `(height, 2·height)`, at least 4. Default
     (None): `default_dual_height` of the samples of positive weight,
