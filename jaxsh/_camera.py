@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float, Real
 from ._compile import jit
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array, as_jax, check_positive_int, is_traced
+from ._checks import error_if_any, as_float_array, as_jax, check_positive_int, is_traced
 
 # --------------------------------------------------------------------------- helpers
 
@@ -118,7 +118,7 @@ def _check_pose(m, who: str):
     orth, det, row = _pose_error(m)
     tol = _rotation_tol(m.dtype)
     bad = ~jnp.all(jnp.isfinite(m)) | ~(orth <= tol) | ~(det > 0) | ~(row <= tol)
-    return eqx.error_if(
+    return error_if_any(
         m, bad, f"{who}: `cam_to_world` must be finite with a rotation block (orthonormal, det +1) and last row [0, 0, 0, 1]"
     )
 
@@ -244,11 +244,11 @@ def _camera_rays(camera):
     m = _check_pose(camera.cam_to_world, type(camera).__name__)
     if isinstance(camera, PinholeCamera):
         intr = jnp.stack([camera.fx, camera.fy, camera.cx, camera.cy])
-        m = eqx.error_if(m, ~((camera.fx > 0.0) & jnp.isfinite(camera.fx)), "PinholeCamera: `fx` must be finite and positive")
-        m = eqx.error_if(m, ~((camera.fy > 0.0) & jnp.isfinite(camera.fy)), "PinholeCamera: `fy` must be finite and positive")
-        m = eqx.error_if(m, ~jnp.all(jnp.isfinite(intr)), "PinholeCamera: `cx`, `cy` must be finite")
+        m = error_if_any(m, ~((camera.fx > 0.0) & jnp.isfinite(camera.fx)), "PinholeCamera: `fx` must be finite and positive")
+        m = error_if_any(m, ~((camera.fy > 0.0) & jnp.isfinite(camera.fy)), "PinholeCamera: `fy` must be finite and positive")
+        m = error_if_any(m, ~jnp.all(jnp.isfinite(intr)), "PinholeCamera: `cx`, `cy` must be finite")
     else:
-        m = eqx.error_if(m, ~((camera.scale > 0.0) & jnp.isfinite(camera.scale)), "OrthographicCamera: `scale` must be finite and positive")
+        m = error_if_any(m, ~((camera.scale > 0.0) & jnp.isfinite(camera.scale)), "OrthographicCamera: `scale` must be finite and positive")
     dt = m.dtype
     rot, t = m[:3, :3], m[:3, 3]
     u = jnp.broadcast_to((jnp.arange(w, dtype=dt) + 0.5)[None, :], (h, w))

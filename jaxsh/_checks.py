@@ -132,6 +132,38 @@ def is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
+def error_if_any(x, bad, msg: str):
+    """`equinox.error_if(x, jnp.any(bad), msg)`, without moving a sharded `x` to one device.
+
+    `equinox.error_if` passes `x` itself through a `lax.cond` whose other branch raises from a host callback.
+    XLA's SPMD partitioner places that conditional on one device, so an `x` sharded over several devices went
+    through that device and was partitioned again (XLA logs "Involuntary full rematerialization"). Here the
+    condition is reduced to a scalar, the error is attached to an unsigned integer 0, and `x` is returned with
+    that 0 OR-ed into its bits: exactly `x` (signed zeros, subnormals, infinities and NaN payloads included),
+    still carrying the check as a data dependence, for one fused bitwise operation. Its derivative is that of
+    the identity. Non-float `x` goes through `equinox.error_if` unchanged.
+    """
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        return eqx.error_if(x, jnp.any(bad), msg)
+    token = eqx.error_if(jnp.zeros((), _UINT[x.dtype.itemsize]), jnp.any(bad), msg)
+    return _or_bits(x, token)
+
+
+_UINT = {2: jnp.uint16, 4: jnp.uint32, 8: jnp.uint64}
+
+
+@jax.custom_jvp
+def _or_bits(x, token):
+    bits = jax.lax.bitcast_convert_type(x, token.dtype)
+    return jax.lax.bitcast_convert_type(bits | token, x.dtype)
+
+
+@_or_bits.defjvp
+def _or_bits_jvp(primals, tangents):
+    return _or_bits(*primals), tangents[0]
+
+
 def check_values(x, bad, name: str, expected: str):
     """Reject the entries of `x` where `bad(x)` holds (a parameter-range check).
 
@@ -140,7 +172,7 @@ def check_values(x, bad, name: str, expected: str):
     array carries the check and must be used in place of `x`.
     """
     if is_traced(x):
-        return eqx.error_if(x, jnp.any(bad(x)), f"`{name}` must be {expected}")
+        return error_if_any(x, bad(x), f"`{name}` must be {expected}")
     mask = np.asarray(bad(np.asarray(x)))  # NumPy on concrete values: no eager XLA programs
     if np.any(mask):
         v = np.asarray(x, dtype=np.float64)

@@ -47,7 +47,7 @@ from ._compile import jit
 from ._custom_types import SequenceLike
 
 from ._camera import Camera, _camera_rays, _check_camera, _require_finite, _require_positive, _scalar, _widest
-from ._checks import as_float_array, coeff_layout, is_traced
+from ._checks import error_if_any, as_float_array, coeff_layout, is_traced
 
 
 def _dot(a, b):
@@ -129,8 +129,8 @@ def sphere_gbuffer(
 
 @jit
 def _sphere_gbuffer(camera, center, radius):
-    radius = eqx.error_if(radius, ~((radius > 0.0) & jnp.isfinite(radius)), "sphere_gbuffer: `radius` must be finite and positive")
-    center = eqx.error_if(center, ~jnp.all(jnp.isfinite(center)), "sphere_gbuffer: `center` must be finite")
+    radius = error_if_any(radius, ~((radius > 0.0) & jnp.isfinite(radius)), "sphere_gbuffer: `radius` must be finite and positive")
+    center = error_if_any(center, ~jnp.all(jnp.isfinite(center)), "sphere_gbuffer: `center` must be finite")
     o, d = _camera_rays(camera)
     f = o - center[None, None, :]
     b = _dot(f, d)
@@ -240,7 +240,7 @@ def _normal_map_gbuffer(camera, n, mask):
     raw2 = jnp.sum(n * n, axis=-1)
     raw = jnp.sqrt(jnp.where(raw2 > 0, raw2, 1.0))
     bad = ~jnp.all(jnp.isfinite(n)) | jnp.any((raw2 > 0) & (jnp.abs(raw - 1) > _NORMAL_TOL))
-    n = eqx.error_if(n, bad, "normal_map_gbuffer: `normals` must be finite, unit (within 1e-3) or exactly zero")
+    n = error_if_any(n, bad, "normal_map_gbuffer: `normals` must be finite, unit (within 1e-3) or exactly zero")
     norm2 = jnp.sum(n * n, axis=-1)  # from the checked array, so that the mask carries the check too
     norm = jnp.sqrt(jnp.where(norm2 > 0, norm2, 1.0))  # double-where: finite gradients at the zero vectors
     on = norm2 > 0

@@ -87,14 +87,13 @@ from __future__ import annotations
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._compile import jit
-from ._checks import as_float_array, check_dirs, common_dtype
+from ._checks import error_if_any, as_float_array, check_dirs, common_dtype
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -163,7 +162,7 @@ def _require(x, bad, name: str, expected: str):
     NaN is not "bad" (it propagates, module docstring): `bad` compares, and comparisons with NaN are False.
     """
     if isinstance(x, jax.core.Tracer):
-        return eqx.error_if(x, jnp.any(bad(x)), f"`{name}` must be {expected}")
+        return error_if_any(x, bad(x), f"`{name}` must be {expected}")
     a = np.asarray(x)
     m = np.asarray(bad(a))
     if m.any():

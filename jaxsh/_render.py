@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -42,7 +41,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Real
 from ._compile import jit
 from ._custom_types import ScalarLike, SequenceLike
 
-from ._checks import as_float_array, check_dirs, check_lmax_range, check_positive_int
+from ._checks import error_if_any, as_float_array, check_dirs, check_lmax_range, check_positive_int
 from ._grids import latlong_directions, latlong_weights
 from ._model import Lighting, TorranceSparrow, model_args
 from ._practical import (
@@ -151,9 +150,9 @@ def _check_sigma_traced(sigma, mu):
     `TorranceSparrow`. (`_combine` relies on it: it evaluates the terms with `check=False`.)"""
     if not isinstance(sigma, jax.core.Tracer) and not isinstance(mu, jax.core.Tracer):
         return sigma, mu
-    sigma = eqx.error_if(sigma, (sigma <= 0) | (sigma == jnp.inf), "`sigma` must be > 0 and finite")
+    sigma = error_if_any(sigma, (sigma <= 0) | (sigma == jnp.inf), "`sigma` must be > 0 and finite")
     if mu is not None:
-        mu = eqx.error_if(mu, mu < 1, "`mu` must be >= 1")
+        mu = error_if_any(mu, mu < 1, "`mu` must be >= 1")
     return sigma, mu
 
 

@@ -27,14 +27,13 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
 from ._compile import by_platform, jit
-from ._checks import check_dirs, check_lmax, check_lmax_range, check_nonzero_dirs
+from ._checks import error_if_any, check_dirs, check_lmax, check_lmax_range, check_nonzero_dirs
 from ._indexing import sh_degrees, sh_orders
 
 # The kernel (`_rows_chunk`) runs the recurrence over l as a rolled loop on a chunk of points laid out
@@ -93,7 +92,7 @@ def _unit_vectors(dirs, name: str = "dirs", check: bool = True):
     norm2 = jnp.sum(dirs * dirs, axis=-1, keepdims=True)
     if check:
         bad = jnp.any(~(jnp.isfinite(norm2) & (norm2 > 0)))
-        norm2 = eqx.error_if(norm2, bad, f"`{name}` contains a zero-length or non-finite direction")
+        norm2 = error_if_any(norm2, bad, f"`{name}` contains a zero-length or non-finite direction")
     return dirs * jax.lax.rsqrt(norm2)
 
 

@@ -16,14 +16,13 @@ graph (a `lax.scan` over l), never embedded as a constant.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
 from ._compile import by_platform, jit
-from ._checks import (as_float_array, check_dirs, check_lmax, check_lmax_range, check_nonzero_dirs, check_positive_int,
+from ._checks import (error_if_any, as_float_array, check_dirs, check_lmax, check_lmax_range, check_nonzero_dirs, check_positive_int,
                       coeff_layout)
 from ._grids import fejer1_weights, latlong_angles
 from ._indexing import sh_degrees, sh_orders
@@ -396,10 +395,10 @@ def _fit_sh(dirs, values, lmax, weights, ridge):
     squeeze = values.ndim == 1
     v = values[:, None] if squeeze else values
     dtype = v.dtype
-    ridge = eqx.error_if(ridge, ridge < 0, "`ridge` must be >= 0")
+    ridge = error_if_any(ridge, ridge < 0, "`ridge` must be >= 0")
     y = _real_sh_flat(_unit_vectors(dirs), lmax)
     if weights is not None:
-        weights = eqx.error_if(weights, jnp.any(weights < 0), "`weights` must be non-negative")
+        weights = error_if_any(weights, jnp.any(weights < 0), "`weights` must be non-negative")
         sw = jnp.sqrt(weights)[:, None]
         y = y * sw
         v = v * sw

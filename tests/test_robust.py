@@ -440,3 +440,28 @@ def test_sharing_models_black_images():
     assert _ok_result(res) == "no_signal"
     res = solvers.fit_one_image(black[0], black[0], np.ones(3), normal, [0.0, 0.0, 1.0], LIGHTS[0], xy, 12, mask=mask)
     assert _ok_result(res) == "no_signal"
+
+
+def test_run_time_checks_return_their_argument_exactly():
+    """`error_if_any` (every traced check of jaxsh) returns `x` bit for bit, signed zeros, infinities and NaN
+    included, keeps its derivative 1 and its vmap, and raises with its message; it checks a scalar, not `x`, so that a
+    sharded `x` stays sharded (tests/test_scale.py)."""
+    from jaxsh._checks import error_if_any
+
+    x = jnp.array([-0.0, 0.0, 1.5, -jnp.inf, jnp.inf, jnp.nan, 1e-310, -3.0])  # 1e-310: subnormal (a product flushed it)
+    f = eqx.filter_jit(lambda v: error_if_any(v, v == 7.0, "no sevens"))  # filter_jit: equinox's own error type
+    y = np.asarray(f(x))
+    assert np.array_equal(y.view(np.uint64), np.asarray(x).view(np.uint64))  # -0.0 stays -0.0, the NaN's bits stay
+    x32 = jnp.array([-0.0, 1e-40, jnp.nan, 2.5], jnp.float32)  # float32 keeps its dtype and bits
+    y32 = np.asarray(f(x32))
+    assert y32.dtype == np.float32 and np.array_equal(y32.view(np.uint32), np.asarray(x32).view(np.uint32))
+    g = jax.grad(lambda v: jnp.sum(error_if_any(v, v < -5.0, "too small") * v))(jnp.array([2.0, -1.0]))
+    np.testing.assert_array_equal(np.asarray(g), [4.0, -2.0])
+    with pytest.raises(eqx.EquinoxRuntimeError, match="no sevens"):
+        f(x.at[2].set(7.0)).block_until_ready()
+    vf = eqx.filter_jit(jax.vmap(lambda v: error_if_any(v, v == 7.0, "no sevens")))
+    np.testing.assert_array_equal(np.asarray(vf(jnp.ones((3, 2)))), np.ones((3, 2)))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="no sevens"):
+        vf(jnp.ones((3, 2)).at[1, 0].set(7.0)).block_until_ready()
+    n = jnp.array([3, 4])  # integers go through equinox.error_if unchanged
+    assert np.array_equal(np.asarray(jax.jit(lambda v: error_if_any(v, v < 0, "neg"))(n)), [3, 4])
