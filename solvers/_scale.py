@@ -20,9 +20,8 @@ formed in loops over chunks of pixels (`lax.scan`, `fori_loop`), which XLA's
 partitioner does not split; it gathers their inputs and runs those loops on
 every device (docs/howto_scale.md, "Run-time checks and per-pixel loops on
 several devices"). The results are right; those passes do not get faster
-with more devices. The
-solvers count observations as the samples of
-positive weight (`n_obs`, RMS, standard errors), so the padding changes the
+with more devices. The solvers count observations as the samples of positive
+weight (`n_obs`, RMS, standard errors), so the padding changes the
 direct solves only by rounding (`inverse_lighting`: tested to 1e-10 relative
 in float64, `tests/test_scale.py`) and the iterative fits within their
 stopping tolerances (the rounding of the regrouped sums moves the iterates;
