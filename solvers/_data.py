@@ -25,6 +25,7 @@ import jaxsh
 from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
 from ._results import Status as Status, status_name as status_name  # re-exported for older imports
+from ._pixel_sums import map_over_pixels, pixel_sharding
 from ._results import check_int
 
 
@@ -366,12 +367,16 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
 def _terms_one(obs: Observations, lighting: Lighting, chunk: int) -> jaxsh.PracticalTerms:
     if not isinstance(lighting, Lighting):
         raise ValueError(f"`lighting` must be a solvers.Lighting, got {type(lighting).__name__}")
-    return jaxsh.practical_terms(
-        obs.normals, obs.views, lighting, chunk=chunk,
-        transfer=None if lighting.slow_sh is None else obs.transfer,
-        fast_visibility=None if lighting.fast_directions is None else obs.fast_visibility,
-        reflected_visibility=None if lighting.slow_sh is None else obs.reflected_visibility,
-    )
+    pixels = (obs.normals, obs.views, None if lighting.slow_sh is None else obs.transfer,
+              None if lighting.fast_directions is None else obs.fast_visibility,
+              None if lighting.slow_sh is None else obs.reflected_visibility)
+
+    def terms(n, v, transfer, fast_visibility, reflected_visibility):
+        return jaxsh.practical_terms(n, v, lighting, chunk=chunk, transfer=transfer, fast_visibility=fast_visibility,
+                                     reflected_visibility=reflected_visibility)
+
+    # sharded pixels (`shard_observations`): each device its own pixels' terms (`_pixel_sums`)
+    return map_over_pixels(terms, pixel_sharding(obs.normals), pixels, replicated=("fast_energy",))
 
 
 def _per_view_arg(x, k: int, n_views: int, name: str):

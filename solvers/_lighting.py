@@ -56,6 +56,7 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
 from ._normal_equations import Gram, accumulate_gram, channel_system, eig_solve, eq25_rows, pixel_chunks
+from ._pixel_sums import pixel_sharding, sum_over_pixels
 from ._results import (Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_lbfgsb,
                        status_from_optimistix, worst, worst_batched)
 from ._threads import blas_single_thread
@@ -185,26 +186,29 @@ def inverse_lighting(
         rcond = 1e-12 if dt == jnp.float64 else 1e-6
     res = _inverse_lighting(obs, kd, ks, None if brdf.mu is None else jnp.asarray(brdf.mu, dt),
                             jnp.asarray(brdf.sigma, dt), lmax, deconvolve, float(ridge), float(rcond), int(chunk),
-                            diffuse_bands == "literal")
+                            diffuse_bands == "literal", pixel_sharding(obs.normals))
     return finish(res, throw)
 
 
 @jaxsh.jit
-def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, chunk, literal=False):
+def _inverse_lighting(obs, kd, ks, mu, sigma, lmax, deconvolve, ridge, rcond, chunk, literal=False, where=None):
+    """`where`: `pixel_sharding(obs.normals)` (static): the pixel sums run on each device's pixels (`_pixel_sums`)."""
     filt = None
     if deconvolve:
         filt = jaxsh.microfacet_spectrum(sigma, lmax)[jaxsh.sh_degrees(lmax)]
-    rss_of = functools.partial(_residual_ss, obs, kd, ks, mu, filt, lmax, chunk, literal)
+    pixels = (obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility)
+    rss_of = functools.partial(_residual_ss, pixels, kd, ks, mu, filt, lmax, chunk, literal, where)
     if literal:
-        ata, atb, bb, count = _literal_system(obs, kd, ks, mu, filt, lmax, chunk)
+        ata, atb, bb, count = sum_over_pixels(functools.partial(_literal_system, lmax=lmax, chunk=chunk), where,
+                                              pixels, (kd, ks, mu, filt))
         return _lighting_from_system(ata, atb, bb, count, kd, lmax, ridge, rcond, rss_of)
-    g = accumulate_gram(obs.normals, obs.views, obs.values, obs.weights, obs.transfer, obs.reflected_visibility, mu,
-                        filt, lmax, chunk)
+    g = sum_over_pixels(lambda n, v, b, w, t, r, mu_, filt_: accumulate_gram(n, v, b, w, t, r, mu_, filt_, lmax, chunk),
+                        where, pixels, (mu, filt))
     ata, atb = channel_system(g, kd, ks)
     return _lighting_from_system(ata, atb, g.bb, g.count, kd, lmax, ridge, rcond, rss_of)
 
 
-def _residual_ss(obs, kd, ks, mu, filt, lmax, chunk, literal, x, rss_normal, bb):
+def _residual_ss(pixels, kd, ks, mu, filt, lmax, chunk, literal, where, x, rss_normal, bb):
     """$\\sum_i w_i (A_c x_c - b_c)_i^2$ per channel `(C,)`, summed over pixel chunks (`lax.scan`), for `eig_solve`.
 
     The normal equations' form $b^Tb - 2x^TA^Tb + x^TA^TAx$ cancels: its rounding is about $\\epsilon\\,b^Tb$.
@@ -214,8 +218,10 @@ def _residual_ss(obs, kd, ks, mu, filt, lmax, chunk, literal, x, rss_normal, bb)
     (`lax.cond`); above, its rounding is under $10^{-9}$ of the RSS."""
 
     def exact():
-        n_p, v_p, b_p, w_p, t_p, r_p = pixel_chunks(obs.normals, obs.views, chunk, obs.values, obs.weights,
-                                                    obs.transfer, obs.reflected_visibility)
+        return sum_over_pixels(exact_local, where, pixels, (kd, ks, mu, filt, x, rss_normal))
+
+    def exact_local(n, v, b, w, t, r, kd, ks, mu, filt, x, rss_normal):
+        n_p, v_p, b_p, w_p, t_p, r_p = pixel_chunks(n, v, chunk, b, w, t, r)
 
         def step(acc, xs):
             nn, vv, bb_, ww, tt, rr = xs
@@ -237,14 +243,15 @@ def _residual_ss(obs, kd, ks, mu, filt, lmax, chunk, literal, x, rss_normal, bb)
     return jax.lax.cond(jnp.any(rss_normal < 1e-6 * bb), exact, lambda: rss_normal)
 
 
-def _literal_system(obs, kd, ks, mu, filt, lmax, chunk):
+def _literal_system(n, v, b, w, transfer, rvis, kd, ks, mu, filt, *, lmax, chunk):
     """Normal equations of eq. 25 as printed: diffuse rows $\\Lambda_l\\hat\\rho_l Y_{lm}(n)$ for every $l \\le l^*$.
 
     Per channel $A_c = K_{d,c}D + K_{s,c}S$, with $D$ and $S$ both `(N, n_coeffs)`; the sums
     $D^TWD$, $D^TWS$, $S^TWS$, $D^TWb$, $S^TWb$ are accumulated over pixel chunks (`lax.scan`).
-    Returns `ata (C, n, n)`, `atb (C, n)`, `bb (C,)`, `count ()`.
+    Returns `ata (C, n, n)`, `atb (C, n)`, `bb (C,)`, `count ()`: sums over the pixels (`transfer` unused: the
+    literal system needs a convex object).
     """
-    n, v, b, w = obs.normals, obs.views, obs.values, obs.weights
+    del transfer
     npx = n.shape[0]
     pad = (-npx) % chunk
     up = jnp.zeros((pad, 3), n.dtype).at[:, 2].set(1.0)
@@ -253,7 +260,7 @@ def _literal_system(obs, kd, ks, mu, filt, lmax, chunk):
     c = b.shape[1]
     xs = (jnp.concatenate([n, up]).reshape(-1, chunk, 3), jnp.concatenate([v, up]).reshape(-1, chunk, 3),
           jnp.pad(b, ((0, pad), (0, 0))).reshape(-1, chunk, c), jnp.pad(w, (0, pad)).reshape(-1, chunk),
-          None if obs.reflected_visibility is None else jnp.pad(obs.reflected_visibility, (0, pad)).reshape(-1, chunk))
+          None if rvis is None else jnp.pad(rvis, (0, pad)).reshape(-1, chunk))
     lam = jaxsh.lambertian_spectrum(lmax, dt)[jaxsh.sh_degrees(lmax)]  # thesis eq. 3.32
 
     def step(acc, x):

@@ -14,13 +14,13 @@ $$A^TWA = \\sum_{d}\\ \\sum_{x \\in \\text{shard}_d} w_x\\,a_x a_x^T .$$
 `shard_observations(obs, mesh)` pads `Observations` to a multiple of the mesh
 size with weight-0 samples and places the per-pixel arrays along the mesh
 axis with a `NamedSharding`. The solvers are then called unchanged: their
-jitted programs see sharded inputs, and the intent is that each device sums
-its own pixels and XLA adds the all-reduce. Today it does not: the sums are
-formed in loops over chunks of pixels (`lax.scan`, `fori_loop`), which XLA's
-partitioner does not split; it gathers their inputs and runs those loops on
-every device (docs/howto_scale.md, "Run-time checks and per-pixel loops on
-several devices"). The results are right; those passes do not get faster
-with more devices. The solvers count observations as the samples of positive
+jitted programs see sharded inputs. The sums are formed in loops over chunks
+of pixels (`lax.scan`), which XLA's partitioner does not split (it gathers
+their inputs and runs the loops on every device), so `fit_brdf` and
+`inverse_lighting` run theirs inside `jax.shard_map` on each device's pixels
+and add the sums with one `psum` (`solvers._pixel_sums`); `factorize` does
+not yet (docs/howto_scale.md, "Run-time checks and per-pixel loops on
+several devices"). The solvers count observations as the samples of positive
 weight (`n_obs`, RMS, standard errors), so the padding changes the
 direct solves only by rounding (`inverse_lighting`: tested to 1e-10 relative
 in float64, `tests/test_scale.py`) and the iterative fits within their
@@ -210,9 +210,9 @@ def shard_observations(obs: Observations, mesh: Mesh, axis: str = "pixels") -> O
     visibility terms, `texel`, `view_index`, `pixel_index`) get
     `NamedSharding(mesh, PartitionSpec(axis))`: device $d$ holds samples
     $[dN/D, (d+1)N/D)$. Call `fit_brdf`, `inverse_lighting` or `factorize`
-    on the result as on `obs`: the same answer to rounding (the chunk loops
-    that form the pixel sums are gathered and run on every device today:
-    module docstring). Padding: see
+    on the result as on `obs`: the same answer to rounding, the pixel sums
+    of `fit_brdf` and `inverse_lighting` computed where the pixels live
+    (`factorize`'s not yet: module docstring). Padding: see
     `pad_observations`. Under `jax.distributed`, every process passes the
     same full `obs` and a mesh over the global devices.
     """

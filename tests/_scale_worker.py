@@ -131,12 +131,28 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
         got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[: obs.n_samples])
         out["fit_brdf"] = dict(compare(got, ref), status=[_status(got), _status(ref)],
                                sigma=[float(got.brdf.sigma), float(ref.brdf.sigma)])
+        # fit_brdf's per-pixel terms made on each device's pixels (solvers._pixel_sums.map_over_pixels)
+        terms = solvers.practical_terms_for(sobs, lighting)
+        out["terms_specs"] = {k: str(getattr(terms, k).sharding.spec) for k in ("bands", "irradiance", "cos_o")}
     if "inverse_lighting" in which:
         print("inverse_lighting", file=sys.stderr, flush=True)
         brdf = solvers.TorranceSparrow(ref.brdf.kd, ref.brdf.ks, ref.brdf.mu, ref.brdf.sigma)
         ref = solvers.inverse_lighting(obs, brdf, 6)
         got = solvers.inverse_lighting(sobs, brdf, 6)
         out["inverse_lighting"] = dict(compare(got, ref), status=[_status(got), _status(ref)])
+        # the pixel sums on each device's pixels (solvers._pixel_sums): no per-pixel array gathered, in either form
+        import jax.numpy as jnp
+
+        from solvers import _lighting
+        from solvers._pixel_sums import pixel_sharding
+
+        c = obs.n_channels
+        for lit in (False, True):
+            compiled = _lighting._inverse_lighting.lower(
+                sobs, jnp.broadcast_to(brdf.kd, (c,)), jnp.broadcast_to(brdf.ks, (c,)), brdf.mu, brdf.sigma, 6, True,
+                0.0, 1e-12, 4096, lit, pixel_sharding(sobs.normals)).compile()
+            text = compiled.compiled.as_text()
+            out[f"inverse_lighting_collectives_literal_{lit}"] = [text.count("all-gather("), text.count("all-reduce(")]
     for name, kw in (("factorize", {"search_pixels": 300}),) if "factorize" in which else ():  # the search subset drawn, as on large captures
         print(name, file=sys.stderr, flush=True)
         ref = solvers.factorize(obs, 6, **kw)

@@ -68,7 +68,14 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
         # every leaf (estimate, std errors, rms, n_obs, ...) but the iteration counts, which rounding may shift
         assert _agrees(got["rel"], got["steps"]), (name, got)
     assert r["inverse_lighting"]["rel"] < TOL  # a direct solve: rounding only
+    # its pixel sums run on each device's pixels: no per-pixel array gathered (10 and 14 all-gathers when XLA's
+    # partitioner split the chunk loops itself), the sums added by a few all-reduces
+    for lit in (False, True):
+        gathers, reduces = r[f"inverse_lighting_collectives_literal_{lit}"]
+        assert gathers == 0 and 1 <= reduces <= 4, (lit, gathers, reduces)
     assert abs(r["fit_brdf"]["sigma"][1] - 0.15) < 0.01  # a real fit, not a trivial one
+    # the band table (N, C, lmax+1) was replicated on every device when XLA's partitioner split its chunk loop
+    assert set(r["terms_specs"].values()) == {"P('pixels',)"}, r["terms_specs"]
     assert r["fitted_padding_is_sample_0"]  # `fitted` of the padded samples: sample 0's geometry (compared above: the rest)
 
 
