@@ -24,8 +24,8 @@ from jaxtyping import Array, ArrayLike, Float, Int, Real
 import jaxsh
 from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
-from ._results import Status as Status, status_name as status_name  # re-exported for older imports
 from ._pixel_sums import map_over_pixels, pixel_sharding
+from ._results import Status as Status, status_name as status_name  # re-exported for older imports
 from ._results import check_int
 
 
