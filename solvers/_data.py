@@ -25,6 +25,7 @@ import jaxsh
 from jaxsh import Lighting as Lighting, TorranceSparrow as TorranceSparrow  # the domain types live in jaxsh
 
 from ._pixel_sums import map_over_pixels, pixel_sharding
+from ._pixel_threads import map_in_threads
 from ._results import Status as Status, status_name as status_name  # re-exported for older imports
 from ._results import check_int
 
@@ -309,6 +310,12 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
     are the view's sources in order (extra columns are ignored).
 
     The visibility terms of a lighting part that `lighting` lacks are not used.
+
+    Where it runs: pixels sharded over devices (`shard_observations`), each device makes its own pixels' terms
+    (`solvers._pixel_sums`); many pixels on one CPU device (at least 16,384 a core), with slow lighting, the
+    pixels are cut into one part per core, each made in its own host thread, and joined: XLA:CPU runs the band
+    sums' loop on one core (`solvers._pixel_threads`; the same values, bitwise). Inside a caller's `jit`, one
+    call.
     """
     lights = view_lightings(obs, lighting)
     for k, lit in enumerate([lighting] if lights is None else lights):
@@ -375,8 +382,14 @@ def _terms_one(obs: Observations, lighting: Lighting, chunk: int) -> jaxsh.Pract
         return jaxsh.practical_terms(n, v, lighting, chunk=chunk, transfer=transfer, fast_visibility=fast_visibility,
                                      reflected_visibility=reflected_visibility)
 
+    where = pixel_sharding(obs.normals)
+    if where is None and lighting.slow_sh is not None:
+        # one CPU device: the band sums (one core's loop) on every core, the pixels in parts (`_pixel_threads`)
+        key = ("practical_terms", chunk, jax.tree.structure(lighting),
+               tuple((np.shape(x), str(getattr(x, "dtype", type(x).__name__))) for x in jax.tree.leaves(lighting)))
+        return map_in_threads(terms, pixels, key, replicated=("fast_energy",), align=chunk)
     # sharded pixels (`shard_observations`): each device its own pixels' terms (`_pixel_sums`)
-    return map_over_pixels(terms, pixel_sharding(obs.normals), pixels, replicated=("fast_energy",))
+    return map_over_pixels(terms, where, pixels, replicated=("fast_energy",))
 
 
 def _per_view_arg(x, k: int, n_views: int, name: str):
