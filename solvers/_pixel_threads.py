@@ -19,6 +19,13 @@ It applies only where it can help and cannot change what is computed: concrete a
 least two parts of `_PART_MIN` pixels, pixel arrays that agree on `N` (otherwise `fn` raises its own
 error). `P` is the number of cores this process may use (`os.sched_getaffinity`), at most `_PARTS_MAX`.
 
+What `fn` may run: programs without LAPACK calls. Two threads running `factorize`'s `_mu_blocks` (Gram blocks
+from a `MirrorTable`, then a batched `eigh`, jaxlib's `lapack_dsyevd_ffi`) at once hung at their first
+concurrent call, every thread waiting in `BlockUntilReady` and XLA's pool idle, with OpenBLAS at one thread or
+two; its Gram part alone, its `eigh` part alone and a plain batched `eigh` ran 10-50 concurrent rounds without
+it. `jaxsh.practical_terms` has no LAPACK call (its only custom calls are the run-time checks' error
+callbacks): 300 calls on `bench_inverse.py`'s capture, in 2 and in 8 parts, all finished, bitwise equal.
+
 The first call of a program must not compile it once per thread (JAX does not merge concurrent compilations
 of the same program: two threads compiled `_practical_terms` twice, in 0.32 s and 0.54 s). So the first
 call with a given `key` (the caller's description of the program: its static arguments and the shapes of its
