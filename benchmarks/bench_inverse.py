@@ -86,6 +86,15 @@ another process (or XLA's thread pool) held a core -- OpenBLAS's spinning
 workers oversubscribe -- so 1 thread is its robust best here; pass
 ``--blas-threads 2`` on a quiet machine to check. Other processes on the
 machine add noise (the load average at start is printed).
+
+Cores: XLA spreads much of jaxsh's work over its thread pool, and
+``fit_brdf``'s band sums (a loop XLA runs on one core) are made in one part
+per core, each in its own host thread (solvers/_pixel_threads.py; on this
+2-core machine 480 -> 274 ms of a ~1 s warm fit). So both jaxsh rows use
+every core, and the baseline's one BLAS thread is its fastest setting here,
+not a handicap chosen for it: with ``--blas-threads 2`` (session 36, load
+average 1.1) the scipy fit_brdf took 17.0 s and factorize 13.3 s, against
+11-13 s and 6.1-6.6 s with one.
 """
 
 from __future__ import annotations
