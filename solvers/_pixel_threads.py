@@ -48,6 +48,7 @@ _PART_MIN = 16384
 _PARTS_MAX = 8
 
 _pool: ThreadPoolExecutor | None = None
+_pool_pid: int | None = None
 _pool_lock = threading.Lock()
 _compiled: set = set()
 
@@ -67,10 +68,13 @@ def n_parts(n: int) -> int:
 
 
 def _executor() -> ThreadPoolExecutor:
-    global _pool
+    """The threads of the parts after the first, made at the first use (and again in a forked child, which
+    inherits the pool's bookkeeping but not its threads)."""
+    global _pool, _pool_pid
     with _pool_lock:
-        if _pool is None:
+        if _pool is None or _pool_pid != os.getpid():
             _pool = ThreadPoolExecutor(max_workers=_PARTS_MAX - 1, thread_name_prefix="jaxsh-pixels")
+            _pool_pid = os.getpid()
         return _pool
 
 

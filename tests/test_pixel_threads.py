@@ -164,3 +164,15 @@ def test_a_failed_run_time_check_in_a_part_raises_as_one_call(rng, parts):
             pt.map_in_threads(fn, (bad, v), key=("test_error",), align=32)
     with pytest.raises(Exception, match="`normals` contains a zero-length or non-finite direction"):
         fn(bad, v)
+
+
+def test_a_forked_child_gets_its_own_threads(monkeypatch):
+    """A child made by `fork` inherits the pool object but not its threads: `_executor` makes a new one when the
+    process id is not the pool's (the child's parts would otherwise wait for threads that do not exist)."""
+    pool = pt._executor()
+    assert pt._executor() is pool
+    pid = pt.os.getpid()
+    monkeypatch.setattr(pt.os, "getpid", lambda: pid + 1)
+    child = pt._executor()
+    assert child is not pool and pt._executor() is child
+    assert child.submit(lambda: 7).result(timeout=10) == 7
