@@ -23,8 +23,15 @@ demo: install
 
 # The CI suite: everything but tests marked slow; notebooks run small. Files are kept on one worker each
 # (--dist loadfile), so a module's fixtures and compiled programs are built once, not once per worker.
+# The tests are compiled at XLA's backend optimization level 0 (TEST_XLA_FLAGS): compilation is most of
+# their time, and level 0 cut the suite by 30 % (docs/performance.md, "Thirtieth round"). The notebooks,
+# end to end, run as a user's programs are compiled (XLA's default), and so does `make test-all`;
+# `make test TEST_XLA_FLAGS=` compiles the tests at the default as well.
+TEST_XLA_FLAGS ?= --xla_backend_optimization_level=0
+
 test: install-tests
-	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile --nbmake $(PYTEST_ARGS) tests notebooks
+	XLA_FLAGS="$(TEST_XLA_FLAGS) $${XLA_FLAGS:-}" $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile $(PYTEST_ARGS) tests
+	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -n 2 --dist loadfile --nbmake notebooks
 
 test-all: install-tests
 	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake tests notebooks
