@@ -99,7 +99,7 @@ def test_nearly_coincident_points_are_not_converged(dtype, n_centers):
     ratio = float(fit.rel_rms) / measured
     if n_centers == len(x):  # the interpolant: its residual, as NumPy measures it (1e-7 apart in float32)
         assert abs(ratio - 1.0) < 1e-5, ratio
-    else:  # greedy, no `tol`: both are rounding noise times weights of 1e16 in float64 (1e5 in float32). The
+    else:  # greedy, no `tol`: both are rounding noise of a singular system (1e16 in float64, 1e5 in float32). The
         # measured one moved 5x between XLA's backend optimization levels 0 and 3; what is meaningful is the order.
         assert 0.5 < ratio < 2.0, ratio
 
