@@ -97,7 +97,6 @@ def test_real_sh_matches_scipy_f64(rng, lmax):
     np.testing.assert_allclose(got, scipy_real_sh(d, lmax), rtol=0, atol=1e-12)
 
 
-@pytest.mark.slow
 def test_real_sh_matches_scipy_lmax100(rng):
     d = _test_dirs(rng, 60)
     got = np.asarray(jaxsh.real_sh(d, 100))
