@@ -26,11 +26,12 @@ demo: install
 # The tests are compiled at XLA's backend optimization level 0 (TEST_XLA_FLAGS): compilation is most of
 # their time, and level 0 cut the suite by 30 % (docs/performance.md, "Thirtieth round"). The notebooks,
 # end to end, run as a user's programs are compiled (XLA's default), and so does `make test-all`;
-# `make test TEST_XLA_FLAGS=` compiles the tests at the default as well.
+# `make test TEST_XLA_FLAGS=` compiles the tests at the default as well. (XLA reads a value that does not
+# start with "--" as a file name and aborts: the `echo` leaves no leading space.)
 TEST_XLA_FLAGS ?= --xla_backend_optimization_level=0
 
 test: install-tests
-	XLA_FLAGS="$(TEST_XLA_FLAGS) $${XLA_FLAGS:-}" $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile $(PYTEST_ARGS) tests
+	XLA_FLAGS="$$(echo $(TEST_XLA_FLAGS) $${XLA_FLAGS:-})" $(BIN)/python -m pytest -m "not slow" -n 2 --dist loadfile $(PYTEST_ARGS) tests
 	JAXSH_NOTEBOOK_SMALL=1 $(BIN)/python -m pytest -n 2 --dist loadfile --nbmake notebooks
 
 test-all: install-tests
