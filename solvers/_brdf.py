@@ -123,6 +123,9 @@ def _inner(D, S, b, w, texel, n_texels: int, textured: str | None):
     texel's diffuse samples determine is kept (before, both were set to 0, and the residual of those texels
     pulled sigma towards values where no specular term underflows).
     """
+    # grey terms `(N, 1)` light every channel of `b`: the same image per channel (a broadcast the sums fuse; the
+    # per-texel solve's loop needs the channels' shapes to agree)
+    D, S = (jnp.broadcast_to(x, b.shape) for x in (D, S))
     wd, ws = w[:, None] * D, w[:, None] * S
     if textured is None:
         a = jnp.sum(wd * D, 0), jnp.sum(wd * S, 0), jnp.sum(ws * S, 0), jnp.sum(wd * b, 0), jnp.sum(ws * b, 0)
@@ -194,7 +197,11 @@ def _gram_homogeneous(terms, D, S, ks, w, mu, sigma, fresnel: bool):
     40–47 ms with the covariance; these sums take 13–15 ms (docs/performance.md, twenty-sixth round).
     """
     dt = D.dtype
-    c = D.shape[1]
+    c = ks.shape[-1]
+    # grey terms `(N, 1)` (a one-channel lighting lights every channel) against C-channel data: each channel's
+    # columns are the same image (a broadcast, fused into the sums below; before, `kk` came out 2 x 2 against
+    # `kp`'s 2C x 2 and every grey-lit fit raised a TypeError)
+    D, S = (jnp.broadcast_to(x, (x.shape[0], c)) for x in (D, S))
     m0 = mu if fresnel else jnp.ones((), dt)
 
     def spec(m, s_):
@@ -533,7 +540,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
         if not fresnel:
             J = J.at[:, 0].set(0.0)
         J = J.at[:, 0].multiply(jnp.where(bound_mu, 0.0, 1.0)).at[:, 1].multiply(jnp.where(bound_sigma, 0.0, 1.0))
-        D, S = d_fin, s_fin
+        D, S = (jnp.broadcast_to(x, b.shape) for x in (d_fin, s_fin))  # grey terms: as in `_gram_homogeneous`
 
         def seg(x):
             return jax.ops.segment_sum(x, texel, num_segments=n_texels)

@@ -117,6 +117,42 @@ def test_photometric_stereo_fit_from_reference_images():
     assert float(solvers.fit_brdf(obs, allin, refine=False).rel_rms) > 5 * float(res.rel_rms)
 
 
+def test_grey_lighting_fits_as_its_rgb_copy():
+    """A one-channel (grey) `Lighting` lights every channel of RGB data (`practical_terms_for`): `fit_brdf`
+    with grey energies `(J, 1)` gives the fit of the same lighting written `(J, 3)`: one lighting per image,
+    homogeneous and per texel, and one lighting for all images. Before, every grey-lit fit raised a TypeError
+    in its standard errors (`(2, 2)` against `(6, 2)` blocks), and the per-texel `kd` fit in its solve's loop
+    (carry shapes)."""
+    g = _sphere(24)
+    dirs = _lights(4)
+    energy = np.array([0.8, 1.1, 0.9, 1.2])
+    rgb = [_one_light(d, (e, e, e)) for d, e in zip(dirs, energy)]
+    grey = [solvers.Lighting(None, jnp.asarray(d[None]), jnp.full((1, 1), e)) for d, e in zip(dirs, energy)]
+    imgs = [np.asarray(jaxsh.render_reference(g.normal, g.view, TRUE, lit)) * np.asarray(g.mask)[..., None] for lit in rgb]
+    tex = np.zeros(g.mask.shape, np.int32)
+    tex[:, g.mask.shape[1] // 2:] = 1
+    flat = solvers.observations([g] * 4, imgs)
+    obs = solvers.observations([g] * 4, imgs, texel=[tex] * 4, n_texels=2)
+    # one lighting (the four sources at once) for one image
+    all4 = [solvers.Lighting(None, jnp.asarray(dirs), jnp.asarray(np.repeat(energy[:, None], c, 1))) for c in (3, 1)]
+    one = solvers.observations([g], [np.asarray(jaxsh.render_reference(g.normal, g.view, TRUE, all4[0]))
+                                     * np.asarray(g.mask)[..., None]])
+    for o, (want_l, got_l), kw in ((flat, (rgb, grey), {}), (obs, (rgb, grey), {"textured": "kd"}),
+                                   (one, all4, {"refine": False})):
+        want, got = solvers.fit_brdf(o, want_l, **kw), solvers.fit_brdf(o, got_l, **kw)
+        assert solvers.status_name(got.status) == solvers.status_name(want.status) == "converged"
+        shape = (2, 3) if kw.get("textured") else (3,)
+        for name in ("kd", "ks"):
+            assert np.shape(getattr(got.brdf, name)) == np.shape(getattr(got.std_errors, name)) == shape
+        # two programs of other shapes: equal to the fits' stopping tolerances (rtol = atol = 1e-8 in u)
+        for a, b in ((got.brdf, want.brdf), (got.std_errors, want.std_errors)):
+            for name in ("kd", "ks", "mu", "sigma"):
+                np.testing.assert_allclose(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), rtol=1e-6,
+                                           err_msg=f"{kw} {name}")
+        if o is obs:  # lit one source per image, as rendered (reference images: the practical model's error)
+            np.testing.assert_allclose(float(got.brdf.sigma), 0.2, rtol=0.05)
+
+
 # --------------------------------------------------------------------------- identifiability
 
 
