@@ -127,7 +127,8 @@ def _check_brdf(brdf, channels: int, name="brdf"):
     for field in ("kd", "ks"):
         k = jnp.shape(getattr(brdf, field))[0]
         if k not in (1, channels):
-            raise ValueError(f"`{name}.{field}` has {k} channels, the images in `obs` {channels} (give C = {channels}, or 1)")
+            raise ValueError(f"`{name}.{field}` has {k} channels, the images in `obs` {channels} "
+                             f"(give {channels if channels == 1 else f'{channels} or 1'})")
 
 
 @blas_single_thread
