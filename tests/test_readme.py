@@ -17,9 +17,11 @@ both parts (the views of `solvers.observations`, then the images under
 directional lights of `solvers.reflectance_samples`); the second prelude
 rebinds it.
 
-Those two tests run the README's own sizes (factorize at lmax 12, 2,000 RBF centres): 53 s on 2 cores at
-XLA's optimization level 0 (`make test`), a few minutes at the default; they were marked slow until the
-suite compiled at level 0 (docs/performance.md, "Thirtieth round"). The fast tests below check more: every
+Those two tests run the README's own sizes (factorize at lmax 12, 2,000 RBF centres): 53-62 s on 2 cores at
+XLA's optimization level 0, a few minutes at the default. They are marked slow (`make test-all`; `make demo`
+runs the end-to-end pipeline): they ran in `make test` for one session (docs/performance.md, "Thirtieth
+round"), until a slower CPU took the suite to its 15-minute line ("Thirty-first round"). The fast tests below
+keep `make test` watching the README: every
 `jaxsh.*` / `solvers.*` name it shows exists and every call of one in the Usage block binds to the callee's
 signature (the arguments' count and keywords), every repository path and link it gives exists (with the
 heading an anchor names), and every `make` target it names is in the Makefile.
@@ -171,6 +173,7 @@ def forward_and_inverse(tmp_path_factory):
     return ns, history
 
 
+@pytest.mark.slow
 def test_readme_usage_forward_and_inverse(forward_and_inverse):
     ns, hist = forward_and_inverse
     assert ns["env"].shape == (40, 80, 3)
@@ -231,6 +234,7 @@ def test_readme_usage_forward_and_inverse(forward_and_inverse):
     assert new.shape == (256, 256, 3) and np.all(np.isfinite(new))
 
 
+@pytest.mark.slow
 def test_readme_usage_reflectance_sharing(forward_and_inverse):
     _, after = usage_statements()
     ns, hist = dict(forward_and_inverse[0]), {}
