@@ -119,8 +119,8 @@ def test_photometric_stereo_fit_from_reference_images():
 
 def test_grey_lighting_fits_as_its_rgb_copy():
     """A one-channel (grey) `Lighting` lights every channel of RGB data (`practical_terms_for`): `fit_brdf`
-    with grey energies `(J, 1)` gives the fit of the same lighting written `(J, 3)`: one lighting per image,
-    homogeneous and per texel, and one lighting for all images. Before, every grey-lit fit raised a TypeError
+    with grey energies `(J, 1)` gives the fit of the same lighting written `(J, 3)`: one light per image,
+    homogeneous and per texel, and one lighting of four sources. Before, every grey-lit fit raised a TypeError
     in its standard errors (`(2, 2)` against `(6, 2)` blocks), and the per-texel `kd` fit in its solve's loop
     (carry shapes)."""
     g = _sphere(24)
