@@ -158,6 +158,22 @@ def test_importing_the_packages_leaves_jax_config_alone():
     assert p.stdout.strip().splitlines()[-1] == "{}", p.stdout
 
 
+def test_the_suite_compiles_into_its_shared_cache():
+    """tests/conftest.py: the run's compiled programs go to one temporary folder, which the caches in memory
+    (dropped after every module) and xdist's other worker read back: a program compiled here is written there."""
+    import os
+
+    folder = os.environ.get("JAXSH_TEST_XLA_CACHE")
+    if folder == "off":
+        pytest.skip("run with JAXSH_TEST_XLA_CACHE=off")
+    assert folder and os.path.isdir(folder), folder
+    assert jax.config.jax_compilation_cache_dir == folder
+    before = set(os.listdir(folder))
+    salt = float(int.from_bytes(os.urandom(4), "little"))  # a program no earlier run or test has compiled
+    assert float(jax.jit(lambda x: x * 3.0 + salt)(np.float64(2.0))) == 6.0 + salt
+    assert set(os.listdir(folder)) - before
+
+
 def _unit(rng, n):
     d = rng.normal(size=(n, 3))
     d[:, 2] = np.abs(d[:, 2]) + 0.2
