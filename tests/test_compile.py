@@ -159,8 +159,9 @@ def test_importing_the_packages_leaves_jax_config_alone():
 
 
 def test_the_suite_compiles_into_its_shared_cache():
-    """tests/conftest.py: the run's compiled programs go to one temporary folder, which the caches in memory
-    (dropped after every module) and xdist's other worker read back: a program compiled here is written there."""
+    """tests/conftest.py: the run's compiled programs go to one temporary folder, from which the later modules (the
+    caches in memory are dropped after every module) and xdist's other worker read them back: a program compiled
+    here is written there."""
     import os
 
     folder = os.environ.get("JAXSH_TEST_XLA_CACHE")
