@@ -121,6 +121,7 @@ from ._factorize_dual import _check_region_arg, _mu_candidates_dual, _stage1_fin
 from ._lighting import DualLightingResult, _dual, _dual_finish, default_dual_height, lighting_from_gram
 from ._normal_equations import (Gram, MirrorTable, accumulate_gram, eq25_rows, grams_at_mus, inverse_spd_small,
                                 mirror_table, pinv_psd, pixel_chunks, solve_spd_small)
+from ._pixel_sums import map_over_pixels, pixel_sharding, sum_and_columns_over_pixels, sum_over_pixels
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, worst
 from ._threads import blas_single_thread
 
@@ -231,10 +232,16 @@ class _Blocks(eqx.Module):
         return jnp.swapaxes(self.h22, -1, -2) @ self.h22
 
 
-def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float) -> _Blocks:
-    g = accumulate_gram(o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility, mu, None, lmax,
-                        chunk)
+def _blocks(o: Observations, mu, lmax: int, chunk: int, rcond: float, where=None) -> _Blocks:
+    """The eq.-25 blocks of `o` at `mu` (`accumulate_gram`), on each device's pixels when `where` (`pixel_sharding`)."""
+    g = sum_over_pixels(lambda n, v, b, w, t, r, mu_: accumulate_gram(n, v, b, w, t, r, mu_, None, lmax, chunk), where,
+                        _pixel_fields(o), (mu,))
     return _Blocks(g, _half_pinv(g.ss[9:, 9:], rcond))
+
+
+def _pixel_fields(o: Observations) -> tuple:
+    """The per-pixel fields of eq. 25's rows and sums: normals, views, values, weights, transfer, reflected visibility."""
+    return o.normals, o.views, o.values, o.weights, o.transfer, o.reflected_visibility
 
 
 def _half_pinv(a, rcond):
@@ -638,7 +645,11 @@ def factorize(
       in every eq.-25 solve, and `fast_visibility` for the source of the
       refinement (its one column, or of several the one whose shadow fits
       the data best at the stage-1 parameters), so its rows are those of
-      `jaxsh.practical_terms` with that shadow.
+      `jaxsh.practical_terms` with that shadow. Sharded pixels
+      (`shard_observations`): the passes over all pixels run on each device's
+      pixels (the blocks summed by a `psum`, the rows kept where the pixels
+      are) and `fitted` is sharded like them; the searches' subset is gathered
+      (docs/howto_scale.md).
     - `lmax`: the lighting cutoff $l^*$ (>= 3; R&H use 12).
     - `fresnel`: fit $\\mu$ (False: $F = 1$, metals).
     - `find_sigma`, `region`: estimate σ from the brightest compact source of
@@ -768,6 +779,9 @@ def factorize(
     dt = obs.values.dtype
     f64 = dt == jnp.float64
     rcond = 1e-12 if f64 else 1e-6
+    # sharded pixels (`shard_observations`): the passes over all pixels run on each device's pixels, their rows stay
+    # there (the search subset, at most `search_pixels`, is gathered: docs/howto_scale.md)
+    where = pixel_sharding(obs.normals)
     rtol = (1e-7 if f64 else 1e-5) if rtol is None else float(rtol)
     atol = (1e-7 if f64 else 1e-5) if atol is None else float(atol)
     sub = obs
@@ -849,6 +863,11 @@ def factorize(
             bl_obs = bl_sub = win
         elif sub is obs or joint_mu:
             bl_obs = bl_sub = _mu_blocks(tab, mu9, lmax, rcond)
+        elif where is not None:
+            # sharded pixels: the pass in the pixels' order on each device's pixels (their rows stay there, for the
+            # refinement: `_joint_from_rows`), the subset's blocks at mu from its table
+            bl_obs, rows_obs, _ = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, refine and find_sigma, where=where)
+            bl_sub = _mu_blocks(tab, mu9, lmax, rcond) if refine and find_sigma else None
         else:
             if refine and find_sigma:  # the subset's blocks from the same pass (`_subset_first`)
                 perm = _subset_first(obs.n_samples, idx, chunk)
@@ -861,7 +880,7 @@ def factorize(
         region_c = None if region is None else check_region(region, 128, dt)
         res1, src = _lighting_and_source(bl_obs, ks, lmax, rcond, region_c, find_sigma)
     else:
-        ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond)
+        ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond, where)
         blocks = (bl_obs, bl_obs if sub is obs else None)
     filtered = res1.coeffs
     # constants made on the host and sent (`jnp.full_like`, `jnp.asarray` each compile a small program at first use)
@@ -874,7 +893,7 @@ def factorize(
 
     def result(brdf, lighting, source, std, status, iterations, rms, rel, stats, fitted=None):
         if fitted is None:  # eq. 25 of the first stage
-            fitted = _stage1_fitted(obs, mu, ks, filtered, lmax, chunk)
+            fitted = _stage1_fitted(obs, mu, ks, filtered, lmax, chunk, where)
         # a parameter stopped at its search range's end: flagged, and its standard error infinite (as `fit_brdf`)
         bound = _at_bound(best, None if source is None else brdf.sigma)
         stats["at_bound"] = {k_: jax.device_put(np.bool_(v)) for k_, v in bound.items()}
@@ -917,6 +936,9 @@ def factorize(
         mu9 = _nine(mu)
         if sub is obs:
             blocks = (_mu_blocks(tab, mu9, lmax, rcond),) * 2
+        elif where is not None:  # sharded pixels (as in stage 1 above)
+            bl_obs, rows_obs, _ = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, where=where)
+            blocks = (bl_obs, _mu_blocks(tab, mu9, lmax, rcond))
         else:
             perm = _subset_first(obs.n_samples, idx, chunk)
             bl_obs, rows_obs, bl_sub = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, perm[0], perm[1], tab)
@@ -947,7 +969,7 @@ def factorize(
         best = t2
         mu = jax.device_put(np.asarray(1.0 + np.exp(t2), dt))
         if dual is None:
-            ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond)
+            ks, res1, golden_steps, bl_obs = _stage1_final(obs, mu, lmax, chunk, rcond, where)
             blocks = (bl_obs, bl_obs if sub is obs else None)
             filtered = res1.coeffs
             src = find_source.__wrapped__(filtered, region=region)
@@ -961,7 +983,7 @@ def factorize(
         stats["num_steps_golden"], stats["n_obs"] = golden_steps, res1.stats["n_obs"]
         stats["num_steps_bisection"] = src.num_steps
     out = _refine(sub, obs, lmax, mu, ks, src.direction, src.sigma, int(max_steps), rtol, atol, chunk, rcond, blocks, tab,
-                  rows_obs, perm)
+                  rows_obs, perm, where)
     ks, sigma, lighting, se_ks, se_sigma, st_nm, its2, rms, rel, data_ss, fitted, bl_final = out
     st1 = res1.status
     if dual is not None:
@@ -1084,7 +1106,7 @@ def _golden_batch(bl: _Blocks):
 
 @jaxsh.jit
 def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows: bool, order=None,
-                      split: int | None = None, tab: MirrorTable | None = None):
+                      split: int | None = None, tab: MirrorTable | None = None, where=None):
     """The eq.-25 blocks at `mu` on all pixels (`accumulate_gram`, one pass), with pinv, repeated to the batch
     of 9 that `_golden_batch` was compiled for (`_mu_blocks`' layout), and with `rows` the pixels' eq.-25 rows
     `((9, N + pad), (n, N + pad))` from the same pass (else None). With `order` and `split` (`_subset_first`: the
@@ -1095,7 +1117,28 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
     216-219 ms so, 239-245 ms with every chunk's rows, 157-166 ms without rows). With `tab`, the subset's
     `MirrorTable` (at least `chunk` pixels), the subset chunks' rows are taken from it, not evaluated
     (`accumulate_gram`'s `known`; `_all_pixel_blocks` 226 against 252 ms at 3 × 256², min of 9).
+    With `where` (`pixel_sharding` of sharded pixels; no `order`, `split` or `tab`), each device makes the blocks
+    and rows of its own pixels (`sum_and_columns_over_pixels`): the blocks added over the devices, the rows
+    `((9, N), (n, N))` left sharded, in the pixels' order and without padding columns (`_joint_from_rows`).
     Returns `(blocks, rows or None, subset blocks or None)`."""
+
+    def batched(g):
+        bl = _Blocks(g, _half_pinv(g.ss[9:, 9:], rcond))
+        return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl)
+
+    if where is not None:
+        if order is not None or split is not None or tab is not None:
+            raise ValueError("`_all_pixel_blocks(where=...)` takes the pixels in their order: no `order`, `split`, `tab`")
+
+        def local(n, v, b, w, t, r, mu_):
+            out = accumulate_gram(n, v, b, w, t, r, mu_, None, lmax, chunk, rows)
+            if not rows:
+                return out, ()
+            g, (rd, rs) = out
+            return g, (rd[:, : n.shape[0]], rs[:, : n.shape[0]])  # the chunk padding's columns cut: the device's pixels
+
+        g, cols = sum_and_columns_over_pixels(local, where, _pixel_fields(obs), (mu,))
+        return batched(g), (cols if rows else None), None
     o = obs if order is None else _permuted(obs, order)
     known = None
     if tab is not None and split is not None and tab.ys.shape[1] >= chunk:
@@ -1105,11 +1148,6 @@ def _all_pixel_blocks(obs: Observations, mu, lmax: int, chunk: int, rcond, rows:
                           mu, None, lmax, chunk, rows, split, split if rows and split is not None else 0, known)
     out = out if isinstance(out, tuple) else (out,)
     g, rows_obs, g_sub = out[0], (out[1] if rows else None), (out[-1] if split is not None else None)
-
-    def batched(g):
-        bl = _Blocks(g, _half_pinv(g.ss[9:, 9:], rcond))
-        return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (9,) + jnp.shape(a)), bl)
-
     return batched(g), rows_obs, (None if g_sub is None else batched(g_sub))
 
 
@@ -1171,11 +1209,12 @@ def _first(bl: _Blocks) -> _Blocks:
 
 
 @jaxsh.jit
-def _stage1_final(obs, mu, lmax, chunk, rcond):
+def _stage1_final(obs, mu, lmax, chunk, rcond, where=None):
     """K_s per channel at the chosen mu on all pixels, the eq.-25 lighting there and the blocks at mu, by direct
-    sums (`factorize` without a `MirrorTable`: `fresnel=False`, or a search subset too large for one)."""
+    sums (`factorize` without a `MirrorTable`: `fresnel=False`, or a search subset too large for one); `where`:
+    `pixel_sharding` (the sums on each device's pixels)."""
     ones = jnp.ones(((lmax + 1) ** 2,), obs.values.dtype)
-    bl = _blocks(obs, mu, lmax, chunk, rcond)
+    bl = _blocks(obs, mu, lmax, chunk, rcond, where)
     ks, _, steps = _golden_ks(bl, ones, 1e-11, 1e-11, 100)
     return ks, lighting_from_gram(bl.g, 1.0 - ks, ks, lmax, 0.0, rcond), steps, bl
 
@@ -1359,13 +1398,15 @@ def _joint_rss(jt: _Joint, sp: _SourceParts, ks, sigma, lmax, rows_fs=None):
 
 
 def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rcond, blocks=(None, None), tab=None,
-            rows_obs=None, perm=None):
+            rows_obs=None, perm=None, where=None):
     """The joint refinement (`_refine_final`'s values, then the all-pixel blocks it used); `blocks`: the eq.-25
     blocks at `mu` on `obs` and on `sub` (None: formed here);
     `tab`: the subset's `MirrorTable` (its rows then come from the table's harmonics), or None; `rows_obs`: the
     eq.-25 rows at `mu` of the pixels outside the subset (`_all_pixel_blocks` with the subset first), or None (all
     rows formed here); `perm`: `_subset_first`'s orders, given with `rows_obs` (the refinement on all pixels then
-    takes the subset's rows from `tab`: `_joint_padded`)."""
+    takes the subset's rows from `tab`: `_joint_padded`), or None with `rows_obs` of every pixel in its order;
+    `where`: `pixel_sharding(obs.normals)` (sharded pixels: the rows of all pixels made on each device's pixels,
+    `_all_pixel_blocks`, and the refinement on all pixels run where they are, `_joint_from_rows`)."""
     bl_obs, bl_sub = blocks
     if tab is not None and bl_sub is not None:
         jt_sub = _joint_from_table(sub, tab, bl_sub, mu, lmax, _K0())
@@ -1377,6 +1418,12 @@ def _refine(sub, obs, lmax, mu, ks0, d, sigma0, max_steps, rtol, atol, chunk, rc
     ks, sigma, status, its, _ = _refine_search(jt_sub, mu, ks0, d, sigma0, lmax, *_limits(max_steps, rtol, atol))
     if sub is obs:
         jt = jt_sub
+    elif where is not None:
+        if rows_obs is None:
+            bl_pass, rows_obs, _ = _all_pixel_blocks(obs, mu, lmax, chunk, rcond, True, where=where)
+            bl_obs = bl_pass if bl_obs is None else bl_obs
+        jt = _joint_from_rows(obs, bl_obs, rows_obs, column)
+        perm = None
     elif rows_obs is not None and bl_obs is not None:
         jt = _joint_padded(obs, bl_obs, rows_obs, column, perm[2], jt_sub)
     else:
@@ -1595,6 +1642,20 @@ def _joint_padded(o: Observations, bl, rows, column, joint, first: _Joint) -> _J
     rows_d, rows_s = rows
     b1, w, b, n, v, fvis = _pad_joint(o, bl, first.rows_d.shape[1] + rows_d.shape[1], column, joint)
     return _Joint(b1, first.rows_d, first.rows_s, first.f, w, b, n, v, fvis, rows_d, rows_s)
+
+
+def _joint_from_rows(o: Observations, bl, rows, column) -> _Joint:
+    """`_Joint` of all pixels in their order, one segment, from the all-pixel pass's rows `((9, N), (n, N))`
+    (`_all_pixel_blocks` with `where`: sharded pixels, each device's rows on that device). Assembled outside a
+    program, as `_joint_padded`: the rows and the pixels' fields go in as they are, sharded."""
+    b1, fvis = _first_and_column(o, bl, column)
+    return _Joint(b1, rows[0], rows[1], None, o.weights, o.values, o.normals, o.views, fvis)
+
+
+@jaxsh.jit
+def _first_and_column(o: Observations, bl, column):
+    """The first of the batched blocks `bl`, and the source's shadow column of `o.fast_visibility` (or None)."""
+    return _first(bl), (None if column is None else o.fast_visibility[:, column])
 
 
 @jaxsh.jit
@@ -1880,14 +1941,17 @@ def _refine_final(jt, ks, sigma, mu, d, lmax, status, its, n: int, pos=None):
 
 
 @jaxsh.jit
-def _stage1_fitted(o: Observations, mu, ks, coeffs, lmax: int, chunk: int):
+def _stage1_fitted(o: Observations, mu, ks, coeffs, lmax: int, chunk: int, where=None):
     """Eq. 25 at `(ks, mu)` with the lighting `coeffs` `(n, C)` (the first stage's model: one set of coefficients
     for the diffuse l <= 2 and the specular rows), `(N, C)`, in chunks of `chunk` pixels (`lax.map`: the rows of
-    one chunk at a time, as `accumulate_gram` forms them)."""
+    one chunk at a time, as `accumulate_gram` forms them); `where`: `pixel_sharding` (each device its pixels)."""
     def one(x):
         n, v, t, r = x
         d, s = eq25_rows(n, v, t, r, mu, None, lmax, coeffs_first=True)
         return ((1.0 - ks)[:, None] * (coeffs[:9].T @ d) + ks[:, None] * (coeffs.T @ s)).T
 
-    out = jax.lax.map(one, pixel_chunks(o.normals, o.views, chunk, o.transfer, o.reflected_visibility))
-    return out.reshape(-1, out.shape[-1])[: o.n_samples]
+    def local(n, v, t, r):
+        out = jax.lax.map(one, pixel_chunks(n, v, chunk, t, r))
+        return out.reshape(-1, out.shape[-1])[: n.shape[0]]
+
+    return map_over_pixels(local, where, (o.normals, o.views, o.transfer, o.reflected_visibility))

@@ -13,7 +13,9 @@ the partitioner, none and 1 inside `shard_map`, the blocks equal to 5e-16 relati
 program 10 all-gathers and 11 all-reduces, now none and 3 (14 and 11 in its literal form, now none and 3).
 
 `map_over_pixels` does the same for a function whose outputs are per-pixel arrays (`jaxsh.practical_terms`
-of `fit_brdf`): each device maps its own pixels, and the outputs stay sharded.
+of `fit_brdf`): each device maps its own pixels, and the outputs stay sharded. `sum_and_columns_over_pixels`
+does both in one pass (`factorize`'s pass over all pixels: the eq.-25 blocks, summed, and every pixel's rows,
+left on its device).
 
 `pixel_sharding(x)` reads the mesh and axis from a concrete array (outside `jit`); the solvers pass it to
 their jitted programs as a static argument, so one device and each mesh compile their own program.
@@ -55,6 +57,32 @@ def sum_over_pixels(fn, where: tuple[Mesh, str] | None, pixels: tuple, shared: t
     # check_vma=False: the loops' carries start as constants (the same on every device) and become per-device
     # sums; the psum makes the outputs equal on every device, as out_specs P() states
     return jax.shard_map(local, mesh=mesh, in_specs=(spec, PartitionSpec()), out_specs=PartitionSpec(),
+                         check_vma=False)(tuple(pixels), tuple(shared))
+
+
+def sum_and_columns_over_pixels(fn, where: tuple[Mesh, str] | None, pixels: tuple, shared: tuple = ()):
+    """`fn(*pixels, *shared)` returning `(sums, columns)`: a pytree of sums over the pixels (as `sum_over_pixels`)
+    and a pytree of per-pixel arrays whose *last* axis is the pixels' (design rows `(k, N)`, as `factorize`'s
+    all-pixel pass writes them).
+
+    `where` None: `fn` itself. `where = (mesh, axis)`: `fn` on each device's pixels (`jax.shard_map`, the `pixels`
+    split along `axis`, `shared` replicated); the sums added over the devices (`psum`), the columns left where they
+    were made, sharded along `axis` on their last axis. `fn` must return columns of exactly its local pixel count
+    (no padding), so that the devices' columns line up with the pixels.
+    """
+    if where is None:
+        return fn(*pixels, *shared)
+    mesh, axis = where
+
+    def local(pix, rest):
+        sums, cols = fn(*pix, *rest)
+        return jax.tree.map(lambda a: jax.lax.psum(a, axis), sums), cols
+
+    sums_shape, cols_shape = jax.eval_shape(fn, *pixels, *shared)
+    out_specs = (jax.tree.map(lambda _: PartitionSpec(), sums_shape),
+                 jax.tree.map(lambda a: PartitionSpec(*(None,) * (a.ndim - 1), axis), cols_shape))
+    spec = PartitionSpec(axis)
+    return jax.shard_map(local, mesh=mesh, in_specs=(spec, PartitionSpec()), out_specs=out_specs,
                          check_vma=False)(tuple(pixels), tuple(shared))
 
 

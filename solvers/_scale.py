@@ -18,9 +18,11 @@ jitted programs see sharded inputs. The sums are formed in loops over chunks
 of pixels (`lax.scan`), which XLA's partitioner does not split (it gathers
 their inputs and runs the loops on every device), so `fit_brdf` and
 `inverse_lighting` run theirs inside `jax.shard_map` on each device's pixels
-and add the sums with one `psum` (`solvers._pixel_sums`); `factorize` does
-not yet (docs/howto_scale.md, "Run-time checks and per-pixel loops on
-several devices"). The solvers count observations as the samples of positive
+and add the sums with one `psum` (`solvers._pixel_sums`); so do `factorize`'s
+passes over all pixels, whose per-pixel rows stay on their devices, while its
+searches run on a gathered subset of at most `search_pixels` samples
+(docs/howto_scale.md, "Run-time checks and per-pixel loops on several
+devices"). The solvers count observations as the samples of positive
 weight (`n_obs`, RMS, standard errors), so the padding changes the
 direct solves only by rounding (`inverse_lighting`: tested to 1e-10 relative
 in float64, `tests/test_scale.py`) and the iterative fits within their

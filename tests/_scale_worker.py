@@ -153,13 +153,88 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
                 0.0, 1e-12, 4096, lit, pixel_sharding(sobs.normals)).compile()
             text = compiled.compiled.as_text()
             out[f"inverse_lighting_collectives_literal_{lit}"] = [text.count("all-gather("), text.count("all-reduce(")]
-    for name, kw in (("factorize", {"search_pixels": 300}),) if "factorize" in which else ():  # the search subset drawn, as on large captures
-        print(name, file=sys.stderr, flush=True)
-        ref = solvers.factorize(obs, 6, **kw)
-        got = solvers.factorize(sobs, 6, **kw)
-        got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[: obs.n_samples])  # a row per sample of `sobs`
-        out[name] = dict(compare(got, ref), status=[_status(got), _status(ref)])
+    if "factorize" in which:
+        out.update(_factorize_equal(obs, sobs))
     return out
+
+
+def _factorize_equal(obs, sobs):
+    """`factorize` on the sharded `sobs` against one device, with the search subset drawn (as on large captures), in
+    the default form and in those that take other paths over all pixels (stage 1's mu, stage 1's model as the
+    result, no Fresnel); the all-gathers of every program it compiled; and its all-pixel pass alone, sharded against one
+    device."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import solvers
+    from solvers import _factorize
+    from solvers._pixel_sums import pixel_sharding
+
+    out = {}
+    with _gathers_of(_factorize) as gathers:
+        for name, kw in (("factorize", {}), ("factorize_mu_stage1", {"refine_mu": False}),
+                         ("factorize_stage1", {"refine": False}), ("factorize_metal", {"fresnel": False})):
+            print(name, file=sys.stderr, flush=True)
+            ref = solvers.factorize(obs, 6, search_pixels=300, **kw)
+            got = solvers.factorize(sobs, 6, search_pixels=300, **kw)
+            spec = str(got.fitted.sharding.spec)
+            got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[: obs.n_samples])  # a row per sample of `sobs`
+            out[name] = dict(compare(got, ref), status=[_status(got), _status(ref)], fitted_spec=spec)
+    out["factorize_gathers"] = gathers
+    # the pass over all pixels alone: each device's blocks summed, its rows left on it, in the pixels' order
+    where = pixel_sharding(sobs.normals)
+    mu = jnp.asarray(1.5)
+    bl, (rd, rs), _ = _factorize._all_pixel_blocks(sobs, mu, 6, 64, 1e-12, True, where=where)
+    bl1, (rd1, rs1), _ = _factorize._all_pixel_blocks(obs, mu, 6, 64, 1e-12, True)
+    n = obs.n_samples
+    out["pass_rows_specs"] = [str(rd.sharding.spec), str(rs.sharding.spec)]
+    out["pass_rows_shapes"] = [list(rd.shape), list(rs.shape)]
+    out["pass_rows_rel"] = max(float(np.max(np.abs(np.asarray(a)[:, :n] - np.asarray(b)[:, :n])) / np.max(np.abs(np.asarray(b))))
+                               for a, b in ((rd, rd1), (rs, rs1)))
+    # the padding sample of `sobs` (weight 0, after the n samples) adds nothing to the blocks
+    out["pass_blocks_rel"] = compare(bl.g, bl1.g)["rel"]  # (not `h22`: an eigenvector's sign is arbitrary)
+    return out
+
+
+class _gathers_of:
+    """Within the block, every jitted program of `module` (`jaxsh.jit`) is also compiled once per signature to
+    count its all-gathers (XLA's compiled text): the dict `{name: [all-gathered shapes]}` of those with any."""
+
+    def __init__(self, module):
+        self.module, self.saved, self.found, self.seen = module, {}, {}, set()
+
+    def __enter__(self):
+        import re
+
+        import jax
+
+        import jaxsh
+
+        for name in dir(self.module):
+            fn = getattr(self.module, name)
+            if not isinstance(fn, jaxsh._compile._LazyJit):
+                continue
+            self.saved[name] = fn
+
+            def counted(*a, _fn=fn, _name=name, **k):
+                sig = (_name, tuple((x.shape, str(x.dtype), str(getattr(x, "sharding", ""))) if hasattr(x, "dtype")
+                                    else repr(x) for x in jax.tree_util.tree_leaves((a, k))))
+                if sig not in self.seen:
+                    self.seen.add(sig)
+                    text = _fn.lower(*a, **k).compile().compiled.as_text()
+                    shapes = re.findall(r"= (\S+) all-gather\(", text)
+                    if shapes:
+                        self.found.setdefault(_name, []).extend(shapes)
+                return _fn(*a, **k)
+
+            setattr(self.module, name, counted)
+        return self.found
+
+    def __exit__(self, *exc):
+        for name, fn in self.saved.items():
+            setattr(self.module, name, fn)
+        return False
 
 
 def many_captures(views=(1, 2, 1, 1, 2, 1, 1, 2, 1), size=12, degenerate=2):

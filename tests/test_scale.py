@@ -88,12 +88,22 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
 MINIMIZER_TOL = 1e-6
 
 
-# Not marked slow (19 s here): it also guards against a deadlock. A batched CPU `eigh` (the mu rounds'
+# Not marked slow (35 s here, four forms of factorize): it also guards against a deadlock. A batched CPU `eigh` (the mu rounds'
 # pseudo-inverses) hung this process on 4 forced host devices until `pinv_psd` sent stacks through `eigh_stack`.
 def test_sharded_factorize_equals_one_device():
     r = _worker("equal", "factorize", timeout=300)
-    assert r["factorize"]["status"][0] == r["factorize"]["status"][1] == "converged"
-    assert r["factorize"]["rel"] < MINIMIZER_TOL, r
+    for name in ("factorize", "factorize_mu_stage1", "factorize_stage1", "factorize_metal"):
+        assert r[name]["status"][0] == r[name]["status"][1] == "converged", (name, r[name])
+        assert r[name]["rel"] < MINIMIZER_TOL, (name, r[name])
+        assert r[name]["fitted_spec"] == "P('pixels',)", (name, r[name])  # the model at each pixel, where it is
+    # the passes over all pixels run on each device's pixels: no program of factorize gathers a per-pixel array (the
+    # all-pixel pass and the refinement's pixels in `_subset_first`'s order gathered normals, views, data and weights:
+    # 4 all-gathers in each of two programs)
+    assert r["factorize_gathers"] == {}, r["factorize_gathers"]
+    # the pass alone: the blocks summed over the devices, every pixel's rows on its device, in the pixels' order
+    assert r["pass_rows_specs"] == ["P(None, 'pixels')"] * 2, r["pass_rows_specs"]
+    assert r["pass_rows_shapes"] == [[9, r["n_padded"]], [49, r["n_padded"]]], r["pass_rows_shapes"]
+    assert r["pass_rows_rel"] < 1e-13 and r["pass_blocks_rel"] < 1e-13, (r["pass_rows_rel"], r["pass_blocks_rel"])
 
 
 def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
