@@ -4,8 +4,10 @@ Workloads (synthetic spheres under the demo's sources, practical model + 1 % noi
 
 - **batch**: `solvers.fit_many` of `--batch` captures (default 64) of 12-24 px, 1-2 views, different
   sizes (power-of-two buckets), the batch axis sharded over the devices;
-- **large**: one capture of `--views` views (default 24) of `--size` px: `fit_brdf` and
-  `inverse_lighting` (l* = 8) on `solvers.shard_observations` (pixels sharded; GSPMD adds the all-reduce).
+- **large**: one capture of `--views` views (default 24) of `--size` px: `fit_brdf`, `inverse_lighting`
+  (l* = 8) and `factorize` (l* = 8, its searches on a quarter of the pixels, so that its passes over all
+  pixels are the sharded part; docs/howto_scale.md) on `solvers.shard_observations` (pixels sharded; each
+  device sums its own pixels, one all-reduce adds them).
 
 Each device count runs in its own process (`XLA_FLAGS=--xla_force_host_platform_device_count=D`: JAX fixes
 its devices at start). Reported: first call (with compilation) and the best warm call, throughput, and the
@@ -71,6 +73,11 @@ def child(args) -> dict:
     brdf = r.brdf
     f, b, _ = timed(lambda: solvers.inverse_lighting(sobs, brdf, 8), reps=3)
     out["large_inverse_lighting"] = {"first_s": f, "warm_s": b}
+    # the search subset (a quarter of the pixels) is gathered on every device; the passes over all pixels are sharded
+    sub = max(obs.n_samples // 4, 8 ** 2 + 4 + 1)
+    f, b, r = timed(lambda: solvers.factorize(sobs, 8, search_pixels=sub), reps=2)
+    out["large_factorize"] = {"first_s": f, "warm_s": b, "search_pixels": sub, "mu": float(r.brdf.mu),
+                              "status": solvers.status_name(r.status)}
     if args.peer:
         sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
         from threadpoolctl import threadpool_limits
@@ -122,19 +129,23 @@ def main():
         rows.append(json.loads(p.stdout.strip().splitlines()[-1]))
     base = rows[0]
     print(f"\n{'devices':>7} | {'batch warm s':>12} {'captures/s':>10} {'eff.':>5} | {'large fit s':>11} {'eff.':>5} | "
-          f"{'large IL s':>10} {'eff.':>5} | first calls (compile) s")
+          f"{'large IL s':>10} {'eff.':>5} | {'large fact. s':>13} {'eff.':>5} | first calls (compile) s")
     for r in rows:
         d = r["devices"] / base["devices"]
         e = lambda k: base[k]["warm_s"] / (d * r[k]["warm_s"])  # noqa: E731
         print(f"{r['devices']:>7} | {r['batch']['warm_s']:12.2f} {r['batch']['captures_per_s']:10.1f} {e('batch'):5.2f} | "
               f"{r['large_fit_brdf']['warm_s']:11.3f} {e('large_fit_brdf'):5.2f} | "
               f"{r['large_inverse_lighting']['warm_s']:10.4f} {e('large_inverse_lighting'):5.2f} | "
-              f"{r['batch']['first_s']:.1f} / {r['large_fit_brdf']['first_s']:.1f} / {r['large_inverse_lighting']['first_s']:.1f}")
+              f"{r['large_factorize']['warm_s']:13.3f} {e('large_factorize'):5.2f} | "
+              f"{r['batch']['first_s']:.1f} / {r['large_fit_brdf']['first_s']:.1f} / "
+              f"{r['large_inverse_lighting']['first_s']:.1f} / {r['large_factorize']['first_s']:.1f}")
     peer = base.get("peer_batch_s")
     if peer is not None:
         print(f"peer: numpy/scipy serial loop of the same {args.batch} fits (1 BLAS thread): {peer:.2f} s "
               f"({args.batch / peer:.1f} captures/s); jaxsh fit_many on 1 device: {base['batch']['warm_s']:.2f} s")
-    print(f"large capture: {base['large_fit_brdf']['n_pixels']} pixels; batch converged: "
+    print(f"large capture: {base['large_fit_brdf']['n_pixels']} pixels (factorize's search on "
+          f"{base['large_factorize']['search_pixels']}; its status {[r['large_factorize']['status'] for r in rows]}, "
+          f"mu {[round(r['large_factorize']['mu'], 6) for r in rows]}); batch converged: "
           f"{[r['batch']['converged'] for r in rows]} of {args.batch}")
     load1 = os.getloadavg()
     print(f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end ({os.cpu_count()} cores: forced host devices "

@@ -18,7 +18,9 @@ does both in one pass (`factorize`'s pass over all pixels: the eq.-25 blocks, su
 left on its device).
 
 `pixel_sharding(x)` reads the mesh and axis from a concrete array (outside `jit`); the solvers pass it to
-their jitted programs as a static argument, so one device and each mesh compile their own program.
+their jitted programs as a static argument, so one device and each mesh compile their own program. Call these
+functions inside a jitted program: called eagerly, the `jax.shard_map` of a new closure is compiled again at
+every call (`fit_brdf`'s per-pixel terms were, 1.1 s a warm call against 0.03 s: `solvers._data._terms_on_devices`).
 """
 
 from __future__ import annotations

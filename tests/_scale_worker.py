@@ -125,6 +125,7 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
         # the search subset drawn (`search_pixels`), as on large captures
         ref = solvers.fit_brdf(obs, lighting, search_pixels=300)
         got = solvers.fit_brdf(sobs, lighting, search_pixels=300)
+        out["fit_brdf_again_compiles"] = _compiled_by(lambda: solvers.fit_brdf(sobs, lighting, search_pixels=300))
         # `fitted` has a row per sample of `sobs`: the padding (weight 0, at the end) is the model at sample 0's geometry
         pad = np.asarray(got.fitted)[obs.n_samples:]
         out["fitted_padding_is_sample_0"] = bool(np.allclose(pad, np.asarray(got.fitted)[:1], rtol=1e-12, atol=0))
@@ -158,6 +159,18 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
     return out
 
 
+def _compiled_by(call):
+    """The names of the programs XLA compiled during `call()` (a second call on sharded pixels: none; an eager
+    `jax.shard_map` of a new closure compiled again at every call)."""
+    import jax
+
+    from tests.helpers import Compiles
+
+    with Compiles() as c:
+        jax.block_until_ready(jax.tree_util.tree_leaves(call()))
+    return c.names
+
+
 def _factorize_equal(obs, sobs):
     """`factorize` on the sharded `sobs` against one device, with the search subset drawn (as on large captures), in
     the default form and in those that take other paths over all pixels (stage 1's mu, stage 1's model as the
@@ -178,6 +191,8 @@ def _factorize_equal(obs, sobs):
             print(name, file=sys.stderr, flush=True)
             ref = solvers.factorize(obs, 6, search_pixels=300, **kw)
             got = solvers.factorize(sobs, 6, search_pixels=300, **kw)
+            if not kw:
+                out["factorize_again_compiles"] = _compiled_by(lambda: solvers.factorize(sobs, 6, search_pixels=300))
             spec = str(got.fitted.sharding.spec)
             got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[: obs.n_samples])  # a row per sample of `sobs`
             out[name] = dict(compare(got, ref), status=[_status(got), _status(ref)], fitted_spec=spec)
