@@ -99,9 +99,9 @@ def test_sharded_factorize_equals_one_device():
         assert r[name]["status"][0] == r[name]["status"][1] == "converged", (name, r[name])
         assert r[name]["rel"] < MINIMIZER_TOL, (name, r[name])
         assert r[name]["fitted_spec"] == "P('pixels',)", (name, r[name])  # the model at each pixel, where it is
-    # the passes over all pixels run on each device's pixels: no program of factorize gathers a per-pixel array (the
-    # all-pixel pass and the refinement's pixels in `_subset_first`'s order gathered normals, views, data and weights:
-    # 4 all-gathers in each of two programs)
+    # the passes over all pixels run on each device's pixels: no program of factorize gathers a per-pixel array (with
+    # the sharded branch switched off, as before, this finds 29 all-gathers in 5 programs: the all-pixel pass, the
+    # refinement's pixels in `_subset_first`'s order, stage 1's direct sums and model, the rows without a table)
     assert r["factorize_gathers"] == {}, r["factorize_gathers"]
     assert r["factorize_again_compiles"] == [], r["factorize_again_compiles"]  # a second call compiles nothing
     # the pass alone: the blocks summed over the devices, every pixel's rows on its device, in the pixels' order
