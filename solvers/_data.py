@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -377,11 +378,7 @@ def _terms_one(obs: Observations, lighting: Lighting, chunk: int) -> jaxsh.Pract
     pixels = (obs.normals, obs.views, None if lighting.slow_sh is None else obs.transfer,
               None if lighting.fast_directions is None else obs.fast_visibility,
               None if lighting.slow_sh is None else obs.reflected_visibility)
-
-    def terms(n, v, transfer, fast_visibility, reflected_visibility):
-        return jaxsh.practical_terms(n, v, lighting, chunk=chunk, transfer=transfer, fast_visibility=fast_visibility,
-                                     reflected_visibility=reflected_visibility)
-
+    terms = functools.partial(_practical_terms_of, lighting, chunk)
     where = pixel_sharding(obs.normals)
     if where is None and lighting.slow_sh is not None:
         # one CPU device: the band sums (one core's loop) on every core, the pixels in parts (`_pixel_threads`)
@@ -400,12 +397,14 @@ def _terms_on_devices(pixels, lighting: Lighting, chunk: int, where):
     Called eagerly, `jax.shard_map` of the closure was compiled again at every call (a new function each time): a
     warm `fit_brdf` of 3,008 pixels on 2 forced host devices took 1.05-1.13 s against 0.04 s on one device, 0.8 s
     of it that compilation (`benchmarks/bench_scale.py`, `tests/test_scale.py`)."""
+    return map_over_pixels(functools.partial(_practical_terms_of, lighting, chunk), where, pixels,
+                           replicated=("fast_energy",))
 
-    def terms(n, v, transfer, fast_visibility, reflected_visibility):
-        return jaxsh.practical_terms(n, v, lighting, chunk=chunk, transfer=transfer, fast_visibility=fast_visibility,
-                                     reflected_visibility=reflected_visibility)
 
-    return map_over_pixels(terms, where, pixels, replicated=("fast_energy",))
+def _practical_terms_of(lighting: Lighting, chunk: int, n, v, transfer, fast_visibility, reflected_visibility):
+    """`jaxsh.practical_terms` of the pixels `n, v` and their visibility terms under `lighting` (`_terms_one`)."""
+    return jaxsh.practical_terms(n, v, lighting, chunk=chunk, transfer=transfer, fast_visibility=fast_visibility,
+                                 reflected_visibility=reflected_visibility)
 
 
 def _per_view_arg(x, k: int, n_views: int, name: str):
