@@ -4,6 +4,7 @@ Conventions are in docs/conventions.md and the README; every public function sta
 the ones it uses.
 """
 
+from ._checks import error_if as error_if
 from ._compile import compile_options as compile_options, jit as jit
 from ._indexing import (
     num_coeffs as num_coeffs,

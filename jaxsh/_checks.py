@@ -32,13 +32,17 @@ array is expected. The same rule holds for `dtype=` keywords.
 
 from __future__ import annotations
 
+import functools
+import logging
 import math
 import operator
+import os
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Bool
 
 _HALF = (jnp.float16, jnp.bfloat16)
 
@@ -133,21 +137,127 @@ def is_traced(x) -> bool:
 
 
 def error_if_any(x, bad, msg: str):
-    """`equinox.error_if(x, jnp.any(bad), msg)`, without moving a sharded `x` to one device.
+    """`equinox.error_if(x, jnp.any(bad), msg)`, without moving a sharded `x` to one device (`jaxsh.error_if`).
 
     `equinox.error_if` passes `x` itself through a `lax.cond` whose other branch raises from a host callback.
     XLA's SPMD partitioner places that conditional on one device, so an `x` sharded over several devices went
     through that device and was partitioned again (XLA logs "Involuntary full rematerialization"). Here the
-    condition is reduced to a scalar, the error is attached to an unsigned integer 0, and `x` is returned with
-    that 0 OR-ed into its bits: exactly `x` (signed zeros, subnormals, infinities and NaN payloads included),
-    still carrying the check as a data dependence, for one fused bitwise operation. Its derivative is that of
-    the identity. Non-float `x` goes through `equinox.error_if` unchanged.
+    condition is reduced to a scalar, the error is attached to an unsigned integer 0 (`_error_token`), and `x`
+    is returned with that 0 OR-ed into its bits: exactly `x` (signed zeros, subnormals, infinities and NaN
+    payloads included), still carrying the check as a data dependence, for one fused bitwise operation. Its
+    derivative is that of the identity. Non-float `x` goes through `equinox.error_if` unchanged.
     """
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         return eqx.error_if(x, jnp.any(bad), msg)
-    token = eqx.error_if(jnp.zeros((), _UINT[x.dtype.itemsize]), jnp.any(bad), msg)
-    return _or_bits(x, token)
+    return _or_bits(x, _error_token(jnp.any(bad), msg, _UINT[x.dtype.itemsize]))
+
+
+def error_if(x: ArrayLike, pred: Bool[ArrayLike, "..."], msg: str) -> Array:
+    """Return `x`, with a run-time error "`msg`" wherever `pred` holds: `equinox.error_if` for jaxsh's programs.
+
+    The same contract as `equinox.error_if(x, jnp.any(pred), msg)`: the returned array must be used in place of
+    `x` (it carries the check); under `jax.jit` a true `pred` raises `equinox.EquinoxRuntimeError` with `msg`
+    when the program runs (inside `equinox.filter_jit` or `jaxsh.jit`; under a bare `jax.jit` the message is
+    inside a `jax.errors.JaxRuntimeError`); the `EQX_ON_ERROR` environment variable (`nan`, `off`,
+    `breakpoint`) is honoured. Two differences, both for several devices:
+
+    - a floating `x` keeps its sharding: the check is attached to its bits, not passed through a conditional
+      that XLA places on one device;
+    - in a process with more than one device, the error is raised by a host callback on *every* device of the
+      program (`jax.debug.callback(..., partitioned=True)`). `equinox.error_if` raises on one device only; the
+      others then wait for it in the program's next collective until XLA aborts the process (measured on 2-4
+      host devices: killed after XLA's 40 s rendezvous timeout). This route makes the program effectful, which
+      costs JAX's slower dispatch path (about 0.1 ms a call); with one device nothing changes.
+
+    **Arguments:**
+
+    - `x`: an array (float: returned bit for bit; other dtypes: through `equinox.error_if`).
+    - `pred`: a boolean array; any true entry is an error.
+    - `msg`: the error message.
+
+    **Returns:** `x`, carrying the check.
+    """
+    if not isinstance(msg, str):
+        raise ValueError(f"`msg` must be a str, got {type(msg).__name__}")
+    return error_if_any(x, pred, msg)
+
+
+def _on_error() -> str:
+    """equinox's `EQX_ON_ERROR` setting, read from the environment when a check is traced (the command line sets
+    it after import, `solvers.cli._enable_cache`, so that its programs hold no host callback)."""
+    return os.environ.get("EQX_ON_ERROR", "raise")
+
+
+def _raise_on_every_device() -> bool:
+    """Whether a failed check raises on every device (`error_if`): a process with several devices, not a TPU
+    (whose runtime has no partitioned callbacks)."""
+    return jax.device_count() > 1 and jax.default_backend() != "tpu"
+
+
+def _manual_axes() -> tuple:
+    """The mesh axes of the enclosing `jax.shard_map` (empty outside one)."""
+    mesh = jax.sharding.get_abstract_mesh()
+    return () if mesh.empty else tuple(mesh.manual_axes)
+
+
+class _EquinoxRuntimeError(RuntimeError):
+    """Raised in the host callback of a failed check on several devices. `equinox.filter_jit` (every jaxsh program
+    is one) recognizes an XLA error that names this class and raises `equinox.EquinoxRuntimeError` with the
+    message instead, as it does for the callback of `equinox.error_if`."""
+
+
+class _QuietFailedChecks(logging.Filter):
+    """Drop JAX's log record of a callback that raised `_EquinoxRuntimeError` (one per device): the error itself
+    reaches the caller. Every other record passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[0] if record.exc_info else None
+        return not (exc is not None and issubclass(exc, _EquinoxRuntimeError))
+
+
+@functools.lru_cache(maxsize=None)
+def _quiet_failed_checks() -> None:
+    logging.getLogger("jax._src.debugging").addFilter(_QuietFailedChecks())
+
+
+def _raise_if(pred, *, msg: str) -> None:
+    if np.any(np.asarray(pred)):
+        from equinox import _jit  # hand the message to filter_jit, as equinox's own callback does
+
+        if hasattr(_jit, "last_error_info"):
+            _jit.last_error_info = (msg, [])
+        raise _EquinoxRuntimeError(msg)
+
+
+def _error_token(pred, msg: str, dtype):
+    """An unsigned-integer 0 of `dtype` carrying the run-time check "`pred` is an error, with message `msg`".
+
+    With one device (or `EQX_ON_ERROR` other than `raise`): `equinox.error_if` on the 0. With several devices:
+    the predicate is reduced over `vmap` (`equinox.internal.unvmap_any`), so the `lax.cond` stays a conditional,
+    and inside `jax.shard_map` over its manual mesh axes (a `psum`); it is then one scalar on every device, so
+    every device takes the same branch, and the error branch's callback raises on each (`error_if`).
+    """
+    zero = jnp.zeros((), dtype)
+    if _on_error() != "raise" or not _raise_on_every_device():
+        return eqx.error_if(zero, pred, msg)
+    if not is_traced(pred):
+        if bool(np.any(np.asarray(pred))):
+            raise eqx.EquinoxTracetimeError(msg)
+        return zero
+    from equinox.internal import unvmap_any  # here: 30 ms of `import jaxsh` otherwise, for several devices only
+
+    _quiet_failed_checks()
+    pred = unvmap_any(pred)
+    manual = _manual_axes()
+    if manual:  # inside `jax.shard_map`: each device holds its own predicate; all of them must take the branch
+        pred = jax.lax.psum(pred.astype(jnp.int32), manual) > 0
+
+    def fail():
+        jax.debug.callback(functools.partial(_raise_if, msg=msg), pred, partitioned=True)
+        return zero
+
+    return jax.lax.cond(pred, fail, lambda: zero)
 
 
 _UINT = {2: jnp.uint16, 4: jnp.uint32, 8: jnp.uint64}

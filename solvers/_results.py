@@ -32,6 +32,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
+import jaxsh
+
 
 class Status(eqx.Enumeration):
     """Outcome of a solve, shared by all solvers (`result.status == Status.converged`).
@@ -244,7 +246,8 @@ def check_float(value, name: str, lo: float = 0.0, strict: bool = False) -> floa
 
 
 def finish(result: Solution, throw: bool) -> Solution:
-    """Apply `throw=`: raise `SolveError` (concrete status) or `equinox.error_if` (traced) unless converged."""
+    """Apply `throw=`: raise `SolveError` (concrete status) or a run-time error (traced: `jaxsh.error_if`, which
+    raises on every device of a sharded program) unless converged."""
     if not throw:
         return result
     st = result.status
@@ -252,7 +255,7 @@ def finish(result: Solution, throw: bool) -> Solution:
         ok = status_name(st) == "converged"
     except jax.errors.ConcretizationTypeError:
         bad = st != Status.converged
-        rms = eqx.error_if(result.rms, bad, "solver did not converge (throw=True); see result.status")
+        rms = jaxsh.error_if(result.rms, bad, "solver did not converge (throw=True); see result.status")
         return eqx.tree_at(lambda r: r.rms, result, rms)
     if not ok:
         raise SolveError(

@@ -6,6 +6,7 @@ The number of (forced host) devices is fixed when JAX starts, so these run in a 
     python tests/_scale_worker.py equal            # sharded == one-device, 3 solvers, uneven N
     python tests/_scale_worker.py many [vmap] [sharded]  # fit_many, one degenerate member, batch sharded
     python tests/_scale_worker.py dist PORT RANK   # one of 2 jax.distributed processes
+    python tests/_scale_worker.py checks           # failed run-time checks raise on every device
 
 Prints one JSON line on stdout.
 """
@@ -340,6 +341,65 @@ def run_single_reference():
             "il_rms": float(il.rms)}
 
 
+def run_checks():
+    """A failed run-time check on several devices: raised as `equinox.EquinoxRuntimeError`, not a process abort.
+
+    Each case is timed: equinox's own route (one device raises, the others wait in the next collective) ended in
+    XLA's abort after its 40 s rendezvous timeout, so a case that returns at all, quickly, with the message, is
+    the check. With `EQX_ON_ERROR=nan` in the environment the same calls return NaN instead."""
+    import time
+
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    import jaxsh
+    from solvers import pixel_mesh
+
+    jax.config.update("jax_enable_x64", True)
+    mesh = pixel_mesh()
+    rows = NamedSharding(mesh, P("pixels", None))
+    flat = NamedSharding(mesh, P("pixels"))
+    n = 256 * len(jax.devices())
+    dirs = np.random.default_rng(0).normal(size=(n, 3))
+    bad_dirs = dirs.copy()
+    bad_dirs[n - 3] = 0.0  # on the last device only
+
+    def total(f):  # a collective after the check: where the other devices used to wait
+        return eqx.filter_jit(lambda *a: jnp.sum(f(*a)))
+
+    sh = total(lambda d: jaxsh.real_sh(d, 4))
+    mapped = total(jax.shard_map(lambda d: jaxsh.real_sh(d, 4), mesh=mesh, in_specs=P("pixels", None),
+                                 out_specs=P("pixels", None), check_vma=False))
+    vmapped = total(jax.vmap(lambda v: jaxsh.error_if(v, v == 7.0, "no sevens")))
+    values = np.arange(n, dtype=np.float64).reshape(-1, 4) + 10.0
+    cases = {
+        "real_sh": (sh, (jax.device_put(dirs, rows),), (jax.device_put(bad_dirs, rows),), "zero-length"),
+        "shard_map": (mapped, (jax.device_put(dirs, rows),), (jax.device_put(bad_dirs, rows),), "zero-length"),
+        "vmap": (vmapped, (jax.device_put(values, rows),), (jax.device_put(np.where(values == n + 5.0, 7.0, values),
+                                                                             rows),), "no sevens"),
+    }
+    out = {"devices": len(jax.devices()), "effects": bool(jax.make_jaxpr(lambda d: jaxsh.real_sh(d, 4))(dirs).effects)}
+    for name, (f, good, bad, text) in cases.items():
+        ok = float(f(*good))
+        t = time.perf_counter()
+        try:
+            r = float(f(*bad))
+            raised = None
+        except eqx.EquinoxRuntimeError as e:
+            r, raised = None, ("EquinoxRuntimeError", text in str(e))
+        except Exception as e:  # noqa: BLE001 - reported, and the test fails on it
+            r, raised = None, (type(e).__name__, text in str(e))
+        out[name] = {"good": ok, "bad": r, "raised": raised, "seconds": time.perf_counter() - t,
+                     "good_again": float(f(*good))}
+    x = jax.device_put(np.array([-0.0, 0.0, 1.5, -np.inf, np.inf, np.nan, 1e-310, -3.0] * (n // 8)), flat)
+    y = jax.jit(lambda v: jaxsh.error_if(v, v == 7.0, "no sevens"))(x)
+    out["bits_equal"] = bool(np.array_equal(np.asarray(y).view(np.uint64), np.asarray(x).view(np.uint64)))
+    out["sharding_kept"] = str(y.sharding.spec) == str(P("pixels"))
+    return out
+
+
 if __name__ == "__main__":
     mode = sys.argv[1]
     if mode == "equal":
@@ -348,6 +408,8 @@ if __name__ == "__main__":
         res = run_many(sys.argv[2:] or ("vmap", "sharded"))
     elif mode == "dist":
         res = run_dist(int(sys.argv[2]), int(sys.argv[3]))
+    elif mode == "checks":
+        res = run_checks()
     elif mode == "single":
         res = run_single_reference()
     else:

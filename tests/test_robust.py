@@ -442,6 +442,21 @@ def test_sharing_models_black_images():
     assert _ok_result(res) == "no_signal"
 
 
+def test_public_error_if_on_one_device():
+    """`jaxsh.error_if` is the checks' own route: on one device it is `equinox.error_if` on a scalar (no effect in
+    the program, so JAX's fast dispatch path stays; the per-device callback of several devices is tested in
+    tests/test_scale.py), `x` returned bit for bit, `EquinoxRuntimeError` with the message when it fails."""
+    x = jnp.array([1.0, -0.0, jnp.nan])
+    f = eqx.filter_jit(lambda v: jaxsh.error_if(v, v > 5.0, "too large"))
+    assert np.array_equal(np.asarray(f(x)).view(np.uint64), np.asarray(x).view(np.uint64))
+    assert not jax.make_jaxpr(lambda v: jaxsh.error_if(v, v > 5.0, "too large"))(x).effects
+    assert not jax.make_jaxpr(lambda d: jaxsh.real_sh(d, 4))(jnp.ones((4, 3))).effects
+    with pytest.raises(eqx.EquinoxRuntimeError, match="too large"):
+        f(x.at[0].set(6.0)).block_until_ready()
+    with pytest.raises(ValueError, match="`msg` must be a str"):
+        jaxsh.error_if(x, x > 5.0, 3)
+
+
 def test_run_time_checks_return_their_argument_exactly():
     """`error_if_any` (every traced check of jaxsh) returns `x` bit for bit, signed zeros, infinities and NaN
     included, keeps its derivative 1 and its vmap, and raises with its message; it checks a scalar, not `x`, so that a

@@ -48,9 +48,9 @@ def _env(devices=None):
     return env
 
 
-def _worker(*args, devices=4, timeout=600):
-    p = subprocess.run([sys.executable, WORKER, *map(str, args)], env=_env(devices), capture_output=True, text=True,
-                       timeout=timeout)
+def _worker(*args, devices=4, timeout=600, env=None):
+    p = subprocess.run([sys.executable, WORKER, *map(str, args)], env=dict(_env(devices), **(env or {})),
+                       capture_output=True, text=True, timeout=timeout)
     assert p.returncode == 0, p.stderr[-3000:]
     # a per-pixel array routed through one device: XLA's partitioner logs this when an operation it cannot split (the
     # host callback of a run-time check, `equinox.error_if`) holds a sharded array (jaxsh._checks.error_if_any)
@@ -122,6 +122,27 @@ def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
         assert _agrees(r["vmap_vs_single"][k], r["vmap_steps_differ"][k]), r
         assert _agrees(r["sharded_vs_single"][k], r["sharded_steps_differ"][k]), r
         assert abs(r["sigma_single"][k] - 0.15) < 0.02
+
+
+@pytest.mark.parametrize("on_error", ["raise", "nan"])
+def test_failed_check_on_several_devices_raises_instead_of_aborting(on_error):
+    """A traced check that fails on one of 4 devices (`real_sh`'s direction check, the same inside `jax.shard_map`,
+    `jaxsh.error_if` under `vmap`), followed by a collective. Through `equinox.error_if` the failing device raised
+    alone and XLA aborted the process after its 40 s rendezvous timeout (docs/howto_scale.md); now each case raises
+    `equinox.EquinoxRuntimeError` with its message at once and the process goes on (the same call on good data
+    gives the same value after the error). With `EQX_ON_ERROR=nan` the failed calls return NaN instead."""
+    env = {} if on_error == "raise" else {"EQX_ON_ERROR": "nan"}
+    r = _worker("checks", env=env, timeout=300)
+    assert r["devices"] == 4 and r["bits_equal"] and r["sharding_kept"]
+    assert r["effects"] == (on_error == "raise")  # the program holds the per-device callback, equinox's otherwise
+    for name in ("real_sh", "shard_map", "vmap"):
+        got = r[name]
+        assert np.isfinite(got["good"]) and got["good_again"] == got["good"], (name, got)
+        if on_error == "raise":
+            assert got["raised"] == ["EquinoxRuntimeError", True] and got["bad"] is None, (name, got)
+            assert got["seconds"] < 10.0, (name, got)
+        else:
+            assert got["raised"] is None and np.isnan(got["bad"]), (name, got)
 
 
 def _free_port():
