@@ -156,7 +156,7 @@ def _scan_parts(x, y, z, lmax: int):
     dtype = x.dtype
     a, b, d = (jnp.asarray(t, dtype=dtype) for t in _recurrence_tables(lmax))
     rho, beta = (jnp.asarray(t, dtype=dtype) for t in _delta_tables(lmax))
-    zeros = jnp.zeros((n,) + x.shape, dtype)
+    zeros = jnp.zeros_like(x, shape=(n,) + x.shape)  # `zeros_like`: per point, like x (`_rows_chunk`)
     return cos_m, sin_m, q_step, (a, b, d, rho, beta), (zeros, zeros)
 
 
@@ -312,8 +312,10 @@ def _rows_chunk(feat, lmax: int):
         out = jax.lax.dynamic_update_slice_in_dim(out, yl, l * l + 2, 0)
         return out, x * cm - y * sm, x * sm + y * cm, delta
 
-    init = (jnp.zeros((n + 2, p), dt), jnp.ones_like(x), jnp.zeros_like(x),
-            jnp.zeros((w if len(zf) > 1 else 1, p), dt))
+    # the carries made `_like` the points (not constants): inside `jax.shard_map` they then vary over the devices
+    # as the loop's outputs do, which its default `check_vma=True` requires
+    init = (jnp.zeros_like(x, shape=(n + 2, p)), jnp.ones_like(x), jnp.zeros_like(x),
+            jnp.zeros_like(x, shape=(w if len(zf) > 1 else 1, p)))
     out = jax.lax.fori_loop(0, lmax + 1, body, init)[0]
     return out[2:]
 
@@ -363,7 +365,7 @@ def _real_sh_flat(unit, lmax: int, coeffs_first: bool = False):
             r = _rows_chunk(jax.lax.dynamic_slice_in_dim(feat, start, chunk, 0), lmax)
             return jax.lax.dynamic_update_slice_in_dim(out, r if coeffs_first else r.T, start, axis)
 
-        out = jnp.zeros((n, n_pts) if coeffs_first else (n_pts, n), feat.dtype)
+        out = jnp.zeros_like(feat, shape=(n, n_pts) if coeffs_first else (n_pts, n))
         return jax.lax.fori_loop(0, -(-n_pts // chunk), body, out)
 
     # Chunks that stay in cache on a CPU; on an accelerator each of the N/128 chunks' (lmax+1) steps would be

@@ -7,6 +7,7 @@ The number of (forced host) devices is fixed when JAX starts, so these run in a 
     python tests/_scale_worker.py many [vmap] [sharded]  # fit_many, one degenerate member, batch sharded
     python tests/_scale_worker.py dist PORT RANK   # one of 2 jax.distributed processes
     python tests/_scale_worker.py checks           # failed run-time checks raise on every device
+    python tests/_scale_worker.py kernels          # per-point kernels inside jax.shard_map (check_vma=True)
 
 Prints one JSON line on stdout.
 """
@@ -341,6 +342,54 @@ def run_single_reference():
             "il_rms": float(il.rms)}
 
 
+def run_kernels():
+    """jaxsh's per-point kernels inside `jax.shard_map` with its default `check_vma=True`, against the same call on
+    one device: the largest absolute difference per kernel, or the error's first line. The loops' carries must
+    vary over the devices as the loops' outputs do; constants as initial carries were a trace-time `TypeError`."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import PartitionSpec as P
+
+    import jaxsh
+    from solvers import pixel_mesh
+
+    jax.config.update("jax_enable_x64", True)
+    mesh = pixel_mesh()
+    n = 64 * len(jax.devices())
+    rng = np.random.default_rng(1)
+
+    def unit(a):
+        return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+    normals = unit(rng.normal(size=(n, 3)) + [0.0, 0.0, 2.0])
+    views = unit(rng.normal(size=(n, 3)) + [0.0, 0.0, 2.0])
+    sky = np.r_[[[1.0, 0.9, 0.8]], 0.1 * rng.normal(size=(80, 3))]
+    light = jaxsh.Lighting(slow_sh=sky, fast_directions=[[0.3, 0.2, 0.9]], fast_energy=[[2.0, 2.0, 2.0]])
+    brdf = jaxsh.TorranceSparrow(kd=[0.3, 0.2, 0.1], ks=[0.4, 0.4, 0.4], mu=1.5, sigma=0.2)
+    kernels = {
+        "real_sh": lambda a, b: jaxsh.real_sh(a, 12),
+        "real_sh_float32": lambda a, b: jaxsh.real_sh(a.astype(jnp.float32), 12),
+        "real_sh_coeffs_first": lambda a, b: jaxsh.real_sh(a, 12, coeffs_first=True).T,
+        "complex_sh": lambda a, b: jnp.abs(jaxsh.complex_sh(a, 8)),
+        "render_practical": lambda a, b: jaxsh.render_practical(a, b, brdf, light),
+        "practical_terms": lambda a, b: [x for x in jax.tree.leaves(jaxsh.practical_terms(a, b, light))
+                                         if x.ndim and x.shape[0] == a.shape[0]],
+    }
+    out = {"devices": len(jax.devices())}
+    for name, f in kernels.items():
+        g = jax.jit(jax.shard_map(f, mesh=mesh, in_specs=(P("pixels", None), P("pixels", None)),
+                                  out_specs=P("pixels")))
+        try:
+            got = jax.tree.leaves(g(normals, views))
+        except Exception as e:  # noqa: BLE001 - reported, and the test fails on it
+            out[name] = f"{type(e).__name__}: {str(e).splitlines()[0]}"
+            continue
+        ref = jax.tree.leaves(f(normals, views))
+        out[name] = max(float(np.max(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))))
+                        for a, b in zip(got, ref))
+    return out
+
+
 def run_checks():
     """A failed run-time check on several devices: raised as `equinox.EquinoxRuntimeError`, not a process abort.
 
@@ -408,6 +457,8 @@ if __name__ == "__main__":
         res = run_many(sys.argv[2:] or ("vmap", "sharded"))
     elif mode == "dist":
         res = run_dist(int(sys.argv[2]), int(sys.argv[3]))
+    elif mode == "kernels":
+        res = run_kernels()
     elif mode == "checks":
         res = run_checks()
     elif mode == "single":
