@@ -366,6 +366,7 @@ def run_kernels():
     sky = np.r_[[[1.0, 0.9, 0.8]], 0.1 * rng.normal(size=(80, 3))]
     light = jaxsh.Lighting(slow_sh=sky, fast_directions=[[0.3, 0.2, 0.9]], fast_energy=[[2.0, 2.0, 2.0]])
     brdf = jaxsh.TorranceSparrow(kd=[0.3, 0.2, 0.1], ks=[0.4, 0.4, 0.4], mu=1.5, sigma=0.2)
+    centers = rng.normal(size=(20, 3))
     kernels = {
         "real_sh": lambda a, b: jaxsh.real_sh(a, 12),
         "real_sh_float32": lambda a, b: jaxsh.real_sh(a.astype(jnp.float32), 12),
@@ -374,6 +375,9 @@ def run_kernels():
         "render_practical": lambda a, b: jaxsh.render_practical(a, b, brdf, light),
         "practical_terms": lambda a, b: [x for x in jax.tree.leaves(jaxsh.practical_terms(a, b, light))
                                          if x.ndim and x.shape[0] == a.shape[0]],
+        "irradiance": lambda a, b: jaxsh.irradiance(sky[:9], a),
+        "torrance_sparrow": lambda a, b: jaxsh.torrance_sparrow(b, b, a, 0.3, 0.4, 1.5, 0.2),
+        "rbf_evaluate": lambda a, b: jaxsh.rbf_evaluate(centers, sky[:20], sky[20:24], a),
     }
     out = {"devices": len(jax.devices())}
     for name, f in kernels.items():

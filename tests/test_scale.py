@@ -146,8 +146,8 @@ def test_failed_check_on_several_devices_raises_instead_of_aborting(on_error):
 
 
 def test_kernels_inside_shard_map_with_its_default_checks():
-    """`real_sh` (float64, float32, both layouts), `complex_sh`, `render_practical` and `practical_terms` inside a
-    user's `jax.shard_map` with its default `check_vma=True`, on 4 devices, equal the one-device call. Their loops
+    """`real_sh` (float64, float32, both layouts), `complex_sh`, `render_practical`, `practical_terms`, `irradiance`,
+    `torrance_sparrow` and `rbf_evaluate` inside a user's `jax.shard_map` with its default `check_vma=True`, on 4 devices, equal the one-device call. Their loops
     started from constant carries, which that check rejected at trace time (`TypeError: scan body function carry
     input and carry output must have equal types`)."""
     r = _worker("kernels", timeout=300)
