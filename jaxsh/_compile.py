@@ -172,3 +172,57 @@ def jit(fun=None, *, optimize: bool = True, **kwargs):
     if fun is None:
         return functools.partial(jit, optimize=optimize, **kwargs)
     return _LazyJit(fun, kwargs, optimize)
+
+
+def row_sharding(x):
+    """`(mesh, axis)` when `x` is a concrete `jax.Array` whose first axis, and only it, is split over more than one
+    device along one mesh axis, evenly; else None (one device, replicated, another layout, or a tracer).
+
+    The kernels that loop over chunks of points (`real_sh` beyond degree 2) then run under `jax.shard_map` on
+    each device's rows (`on_row_shards`): XLA's partitioner does not split such a loop, it gathers the loop's
+    input and runs the whole loop on every device (docs/howto_scale.md)."""
+    sh = getattr(x, "sharding", None)
+    if isinstance(x, jax.core.Tracer) or not isinstance(sh, jax.sharding.NamedSharding) or x.ndim < 2:
+        return None
+    spec = tuple(sh.spec) + (None,) * (x.ndim - len(sh.spec))
+    axis = spec[0]
+    if not isinstance(axis, str) or any(s is not None for s in spec[1:]):
+        return None
+    k = sh.mesh.shape[axis]
+    return (sh.mesh, axis) if k > 1 and x.shape[0] % k == 0 else None
+
+
+def rows_sharding(*rows):
+    """`row_sharding` of the first array of `rows` when every other array of `rows` (None skipped) is split the same
+    way, else None."""
+    arrays = [a for a in rows if a is not None]
+    where = row_sharding(arrays[0]) if arrays else None
+    if where is None or any(row_sharding(a) != where or a.shape[0] != arrays[0].shape[0] for a in arrays[1:]):
+        return None
+    return where
+
+
+def on_row_shards(fn, where, rows: tuple, shared: tuple = (), out_axis: int = 0, replicated: tuple = ()):
+    """`fn(*rows, *shared)` on each device's rows (`jax.shard_map` over `where = (mesh, axis)` of `row_sharding`):
+    the arrays of `rows` (or None) split along their first axis, those of `shared` replicated. Every output leaf is
+    split along its axis `out_axis`, except the fields named in `replicated` (the same on every device, e.g.
+    `PracticalTerms.fast_energy`). Call inside a jitted program."""
+    mesh, axis = where
+    spec = jax.sharding.PartitionSpec
+
+    def row_spec(a):
+        return None if a is None else spec(axis, *(None,) * (a.ndim - 1))
+
+    def out_spec(path, leaf):
+        name = getattr(path[-1], "name", None) if path else None
+        if name in replicated:
+            return spec()
+        parts = [None] * leaf.ndim
+        parts[out_axis] = axis
+        return spec(*parts)
+
+    k = mesh.shape[axis]
+    local = tuple(None if a is None else jax.ShapeDtypeStruct((a.shape[0] // k,) + a.shape[1:], a.dtype) for a in rows)
+    out_specs = jax.tree_util.tree_map_with_path(out_spec, jax.eval_shape(lambda r: fn(*r, *shared), local))
+    in_specs = (tuple(row_spec(a) for a in rows), tuple(None if a is None else spec() for a in shared))
+    return jax.shard_map(lambda r, s: fn(*r, *s), mesh=mesh, in_specs=in_specs, out_specs=out_specs)(rows, shared)

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
-from ._compile import jit
+from ._compile import jit, on_row_shards, rows_sharding
 from ._custom_types import SequenceLike
 
 from ._checks import as_jax, check_dirs, check_lmax_range, check_positive_int
@@ -518,6 +518,10 @@ def practical_terms(
     measured at 5,000 pixels, lmax 16, σ 0.2). Slow lighting beyond the degree
     the dtype evaluates (`real_sh`'s `REAL_SH_MAX_LMAX`: 170 below float64) is a
     `ValueError`: the per-pixel harmonics come out NaN near the poles there.
+    Pixels split over several devices (`normals`, `views` and the visibility
+    terms with the same `NamedSharding` along their first axis, evenly) are
+    processed on their devices, and the per-pixel fields stay split
+    (docs/howto_scale.md).
     """
     lighting = practical_lighting(
         lighting, dict(slow_sh=slow_sh, fast_directions=fast_directions, fast_energy=fast_energy)
@@ -532,9 +536,21 @@ def practical_terms(
         check_lmax_range(lighting.lmax, dt, REAL_SH_MAX_LMAX, "`practical_terms` (per-pixel SH band sums)")
     slow, fdir, fen = _prepare_lighting(lighting, dt)
     vis = _prepare_visibility(lighting, n.shape[:1], transfer, fast_visibility, reflected_visibility, dt, strict=True)
-    return _practical_terms(n.astype(dt), v.astype(dt), slow, fdir, fen, *vis, bool(exact_fast_diffuse), chunk)
+    n, v = n.astype(dt), v.astype(dt)
+    where = rows_sharding(n, v, *vis)
+    if where is not None:  # each device's pixels on that device (`jaxsh._compile.row_sharding`)
+        return _practical_terms_rows(n, v, slow, fdir, fen, *vis, bool(exact_fast_diffuse), chunk, where)
+    return _practical_terms(n, v, slow, fdir, fen, *vis, bool(exact_fast_diffuse), chunk)
 
 
 @jit
 def _practical_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk):
     return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk)
+
+
+@jit
+def _practical_terms_rows(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk, where):
+    def local(n, v, transfer, fvis, rvis, slow_sh, fdir, fen):
+        return _eq24_terms(n, v, slow_sh, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, chunk)
+
+    return on_row_shards(local, where, (n, v, transfer, fvis, rvis), (slow_sh, fdir, fen), replicated=("fast_energy",))

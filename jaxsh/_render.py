@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Real
-from ._compile import jit
+from ._compile import jit, on_row_shards, row_sharding
 from ._custom_types import ScalarLike, SequenceLike
 
 from ._checks import error_if_any, as_float_array, check_dirs, check_lmax_range, check_positive_int
@@ -225,7 +225,10 @@ def render_practical(
     outside `jit`, the pixels are padded to a bucket of sizes
     (`_pixel_bucket`: N rounded up to three significant bits, at least 1,024)
     so that renders of other pixel counts in the bucket compile nothing
-    (docs/performance.md, fifteenth round).
+    (docs/performance.md, fifteenth round). Normals split over several devices
+    along their first (pixel) axis (a `NamedSharding`, evenly) are not padded:
+    each device renders its own pixels and the outputs stay split
+    (docs/howto_scale.md).
     """
     brdf, lighting, light_kw = model_args("render_practical", brdf, lighting, legacy, legacy_kw, _LIGHT_KW)
     lighting = practical_lighting(lighting, light_kw)
@@ -253,8 +256,13 @@ def render_practical(
     sigma, mu = _check_sigma_traced(jnp.asarray(brdf.sigma, dt), mu)
     npx = n.shape[0]
     rows = _choose_table(method, lighting, brdf.sigma, npx, dt)
-    (n, v, kd, ks, *vis), mask = _pad_pixels(npx, (n, v, kd, ks, *vis), mask, (slow, sigma, mu, fdir, fen))
-    terms = _terms(n, v, mask, slow, sigma, fdir, fen, *vis, bool(exact_fast_diffuse), rows)
+    where = row_sharding(n)
+    if where is not None:  # each device's pixels on that device (`jaxsh._compile.row_sharding`), without padding
+        (n, v, kd, ks, *vis), mask = _on_rows(where, npx, (n, v, kd, ks, *vis), mask)
+        terms = _terms_rows(n, v, mask, slow, sigma, fdir, fen, *vis, bool(exact_fast_diffuse), rows, where)
+    else:
+        (n, v, kd, ks, *vis), mask = _pad_pixels(npx, (n, v, kd, ks, *vis), mask, (slow, sigma, mu, fdir, fen))
+        terms = _terms(n, v, mask, slow, sigma, fdir, fen, *vis, bool(exact_fast_diffuse), rows)
     out = _combine(terms, mask, kd, ks, mu, sigma)
     c = out.total.shape[-1]
     if out.total.shape[0] != npx:  # padded: the pixels' own rows, copied on the host (no program per count)
@@ -298,6 +306,20 @@ def _pad_pixels(npx: int, arrays, mask, others=()):
 
     keep = np.ones(npx, bool) if mask is None else np.asarray(mask, bool)
     return tuple(grow(x) for x in arrays), np.concatenate([keep, np.zeros(pad, bool)])
+
+
+def _on_rows(where, npx: int, arrays, mask):
+    """The per-pixel arrays (leading axis `npx`, and `mask`) split over the devices as the normals are
+    (`row_sharding`'s `where`); arrays of another leading size (a `(1, C)` parameter) and None pass unchanged."""
+    mesh, axis = where
+
+    def put(x):
+        if x is None or x.shape[0] != npx:
+            return x
+        spec = jax.sharding.PartitionSpec(axis, *(None,) * (x.ndim - 1))
+        return jax.device_put(x, jax.sharding.NamedSharding(mesh, spec))
+
+    return tuple(put(x) for x in arrays), put(mask)
 
 
 # `method="auto"` takes the table when N (lmax+1)^2 >= _TABLE_COST * H * W and N >= _TABLE_MIN_PIXELS:
@@ -345,6 +367,19 @@ def _choose_table(method, lighting, sigma, npx: int, dt=jnp.float64) -> int | No
 # recompute) the table lookup and the shared per-pixel terms into each of the four outputs.
 @jit
 def _terms(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows):
+    return _terms_body(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows)
+
+
+@jit
+def _terms_rows(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows, where):
+    def local(n, v, mask, transfer, fvis, rvis, slow_sh, sigma, fdir, fen):
+        return _terms_body(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows)
+
+    return on_row_shards(local, where, (n, v, mask, transfer, fvis, rvis), (slow_sh, sigma, fdir, fen),
+                         replicated=("fast_energy",))
+
+
+def _terms_body(n, v, mask, slow_sh, sigma, fdir, fen, transfer, fvis, rvis, exact_fast_diffuse, rows):
     if mask is not None:  # pixels outside the mask look along +z (a valid direction) and render as 0
         up = jnp.asarray([0.0, 0.0, 1.0], n.dtype)
         n = jnp.where(mask[:, None], n, up)

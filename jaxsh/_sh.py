@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Real
 
-from ._compile import by_platform, jit
+from ._compile import by_platform, jit, on_row_shards, row_sharding
 from ._checks import error_if_any, check_dirs, check_lmax, check_lmax_range, check_nonzero_dirs
 from ._indexing import sh_degrees, sh_orders
 
@@ -414,7 +414,10 @@ def real_sh(
       that layout rather than transposed afterwards.
 
     **Returns:** shape `(..., (lmax+1)**2)` (or `((lmax+1)**2, ...)` with
-    `coeffs_first`), the dtype of `dirs`.
+    `coeffs_first`), the dtype of `dirs`. For `dirs` split over several
+    devices along its first axis (a `NamedSharding`, evenly), each device
+    evaluates its own directions and the result is split the same way
+    (docs/howto_scale.md).
 
     Comparable to `sphericart.SphericalHarmonics(lmax)` and to
     `scipy.special.sph_harm_y` (complex, angles instead of directions).
@@ -423,11 +426,23 @@ def real_sh(
     lmax = check_lmax_range(check_lmax(lmax), dirs.dtype, REAL_SH_MAX_LMAX, "`real_sh`")
     if not isinstance(coeffs_first, (bool, np.bool_)):
         raise ValueError(f"`coeffs_first` must be a bool, got {coeffs_first!r}")
+    where = row_sharding(dirs) if lmax > _UNROLLED_LMAX else None
+    if where is not None:  # each device's directions on that device (`row_sharding`)
+        return _real_sh_rows(dirs, lmax, bool(coeffs_first), where)
     return _real_sh_jit(dirs, lmax, bool(coeffs_first))
 
 
 @jit
+def _real_sh_rows(dirs, lmax, coeffs_first, where):
+    return on_row_shards(lambda d: _real_sh_body(d, lmax, coeffs_first), where, (dirs,), out_axis=int(coeffs_first))
+
+
+@jit
 def _real_sh_jit(dirs, lmax, coeffs_first=False):
+    return _real_sh_body(dirs, lmax, coeffs_first)
+
+
+def _real_sh_body(dirs, lmax, coeffs_first=False):
     batch = dirs.shape[:-1]
     flat = dirs.reshape(-1, 3)
     out = _real_sh_flat(_unit_vectors(flat), lmax, coeffs_first)
@@ -467,9 +482,17 @@ def complex_sh(dirs: Real[ArrayLike, "*batch 3"], lmax: int) -> Complex[Array, "
     """
     dirs = check_nonzero_dirs(dirs)
     lmax = check_lmax_range(check_lmax(lmax), dirs.dtype, REAL_SH_MAX_LMAX, "`complex_sh`")
+    where = row_sharding(dirs) if lmax > _UNROLLED_LMAX else None
+    if where is not None:
+        return _complex_sh_rows(dirs, lmax, where)
     return _complex_sh_jit(dirs, lmax)
 
 
 @jit
 def _complex_sh_jit(dirs, lmax):
-    return _complex_from_real(_real_sh_jit(dirs, lmax), lmax)
+    return _complex_from_real(_real_sh_body(dirs, lmax), lmax)
+
+
+@jit
+def _complex_sh_rows(dirs, lmax, where):
+    return on_row_shards(lambda d: _complex_from_real(_real_sh_body(d, lmax), lmax), where, (dirs,))

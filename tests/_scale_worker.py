@@ -8,6 +8,7 @@ The number of (forced host) devices is fixed when JAX starts, so these run in a 
     python tests/_scale_worker.py dist PORT RANK   # one of 2 jax.distributed processes
     python tests/_scale_worker.py checks           # failed run-time checks raise on every device
     python tests/_scale_worker.py kernels          # per-point kernels inside jax.shard_map (check_vma=True)
+    python tests/_scale_worker.py top              # per-point kernels on sharded arrays: stay sharded, no gather
 
 Prints one JSON line on stdout.
 """
@@ -342,6 +343,55 @@ def run_single_reference():
             "il_rms": float(il.rms)}
 
 
+def run_top():
+    """jaxsh's per-point kernels called on sharded arrays (`jax.device_put` with the points split over the devices),
+    outside any `jit`: each output's sharding spec, its largest difference from the same call on host arrays (one
+    device), and the all-gathers of every program they compiled (`_gathers_of`)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    import jaxsh
+    from jaxsh import _practical, _render, _sh
+    from solvers import pixel_mesh
+
+    jax.config.update("jax_enable_x64", True)
+    mesh = pixel_mesh()
+    k = len(jax.devices())
+    n = 300 * k  # not a render bucket: render_practical would pad it on the host
+    rng = np.random.default_rng(2)
+
+    def unit(a):
+        return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+    normals = unit(rng.normal(size=(n, 3)) + [0.0, 0.0, 2.0])
+    views = unit(rng.normal(size=(n, 3)) + [0.0, 0.0, 2.0])
+    kd = rng.uniform(0.1, 0.5, size=(n, 3))
+    mask = rng.uniform(size=n) > 0.1
+    sky = np.r_[[[1.0, 0.9, 0.8]], 0.1 * rng.normal(size=(80, 3))]
+    light = jaxsh.Lighting(slow_sh=sky, fast_directions=[[0.3, 0.2, 0.9]], fast_energy=[[2.0, 2.0, 2.0]])
+    brdf = jaxsh.TorranceSparrow(kd=kd, ks=[0.4, 0.4, 0.4], mu=1.5, sigma=0.2)
+    rows = NamedSharding(mesh, P("pixels", None))
+    sn, sv = jax.device_put(normals, rows), jax.device_put(views, rows)
+    calls = {
+        "real_sh": lambda a, b, m: jaxsh.real_sh(a, 12),
+        "real_sh_coeffs_first": lambda a, b, m: jaxsh.real_sh(a, 12, coeffs_first=True),
+        "complex_sh": lambda a, b, m: jaxsh.complex_sh(a, 8),
+        "practical_terms": lambda a, b, m: [x for x in jax.tree.leaves(jaxsh.practical_terms(a, b, light))
+                                            if x.ndim and x.shape[0] == n and x.dtype != bool],
+        "render_practical": lambda a, b, m: list(jaxsh.render_practical(a, b, brdf, light, mask=m)),
+    }
+    out = {"devices": k}
+    with _gathers_of(_sh) as g1, _gathers_of(_practical) as g2, _gathers_of(_render) as g3:
+        for name, f in calls.items():
+            got = jax.tree.leaves(f(sn, sv, jax.device_put(mask, NamedSharding(mesh, P("pixels")))))
+            ref = jax.tree.leaves(f(normals, views, mask))
+            out[name] = {"specs": sorted({str(getattr(x.sharding, "spec", type(x.sharding).__name__)) for x in got}),
+                         "err": max(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) for a, b in zip(got, ref))}
+    out["gathers"] = {**g1, **g2, **g3}
+    return out
+
+
 def run_kernels():
     """jaxsh's per-point kernels inside `jax.shard_map` with its default `check_vma=True`, against the same call on
     one device: the largest absolute difference per kernel, or the error's first line. The loops' carries must
@@ -461,6 +511,8 @@ if __name__ == "__main__":
         res = run_many(sys.argv[2:] or ("vmap", "sharded"))
     elif mode == "dist":
         res = run_dist(int(sys.argv[2]), int(sys.argv[3]))
+    elif mode == "top":
+        res = run_top()
     elif mode == "kernels":
         res = run_kernels()
     elif mode == "checks":

@@ -157,6 +157,21 @@ def test_kernels_inside_shard_map_with_its_default_checks():
         assert err <= (1e-6 if "float32" in name else 1e-13), (name, err)
 
 
+def test_kernels_on_sharded_arrays_stay_sharded():
+    """`real_sh` (both layouts), `complex_sh`, `practical_terms` and `render_practical` (a per-pixel `kd`, a mask, a
+    pixel count that is no render bucket) called on arrays split over 4 devices: the outputs stay split along the
+    points, equal the one-device call, and no program they compiled gathers the points. Before, `real_sh` beyond
+    degree 2 and `practical_terms` gathered every point into each device's loop and returned replicated arrays, and
+    `render_practical` padded the pixels on the host and rendered them on one device."""
+    r = _worker("top", timeout=300)
+    assert r.pop("devices") == 4
+    assert r.pop("gathers") == {}
+    for name, got in r.items():
+        want = "P(None, 'pixels')" if name == "real_sh_coeffs_first" else "P('pixels'"
+        assert all(spec.startswith(want) for spec in got["specs"]), (name, got)
+        assert got["err"] <= 1e-13, (name, got)
+
+
 def _free_port():
     with socket.socket() as s:
         s.bind(("localhost", 0))
