@@ -7,7 +7,10 @@ Workloads (synthetic spheres under the demo's sources, practical model + 1 % noi
 - **large**: one capture of `--views` views (default 24) of `--size` px: `fit_brdf`, `inverse_lighting`
   (l* = 8) and `factorize` (l* = 8, its searches on a quarter of the pixels, so that its passes over all
   pixels are the sharded part; docs/howto_scale.md) on `solvers.shard_observations` (pixels sharded; each
-  device sums its own pixels, one all-reduce adds them).
+  device sums its own pixels, one all-reduce adds them);
+- **kernels**: `jaxsh.real_sh` (lmax 16) and `jaxsh.render_practical` (`method="exact"`) of `--points` points
+  (default 2^17) split over the devices (`jax.device_put` with `NamedSharding(mesh, P("pixels", None))`), called
+  outside `jit`: each device evaluates its own points, the output stays split.
 
 Each device count runs in its own process (`XLA_FLAGS=--xla_force_host_platform_device_count=D`: JAX fixes
 its devices at start). Reported: first call (with compilation) and the best warm call, throughput, and the
@@ -18,7 +21,8 @@ peer does a little more work than jaxsh here. On a GPU machine the
 device counts are GPUs (`--gpu`). Forced host devices share the machine's cores: on a 2-core machine 4
 devices cannot run faster than 2. The load average is printed (other processes add noise).
 
-    python benchmarks/bench_scale.py [--batch 64] [--views 24] [--size 24] [--devices 1 2 4] [--json out.json]
+    python benchmarks/bench_scale.py [--batch 64] [--views 24] [--size 24] [--points 131072] [--devices 1 2 4]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -74,10 +78,28 @@ def child(args) -> dict:
     f, b, _ = timed(lambda: solvers.inverse_lighting(sobs, brdf, 8), reps=3)
     out["large_inverse_lighting"] = {"first_s": f, "warm_s": b}
     # the search subset (a quarter of the pixels) is gathered on every device; the passes over all pixels are sharded
-    sub = max(obs.n_samples // 4, 8 ** 2 + 4 + 1)
+    sub = max(obs.n_samples // 4, (8 + 1) ** 2 + 4)  # at least the search's unknowns at lmax 8
     f, b, r = timed(lambda: solvers.factorize(sobs, 8, search_pixels=sub), reps=2)
     out["large_factorize"] = {"first_s": f, "warm_s": b, "search_pixels": sub, "mu": float(r.brdf.mu),
                               "status": solvers.status_name(r.status)}
+    # the kernels on arrays split over the devices (outside jit): each device evaluates its own points
+    import jaxsh
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    rows_on = NamedSharding(solvers.pixel_mesh(d), P("pixels", None))
+    dirs = rng.normal(size=(args.points, 3))
+    sdirs = jax.device_put(dirs, rows_on)
+    f, b, y = timed(lambda: jaxsh.real_sh(sdirs, 16), reps=3)
+    out["real_sh"] = {"n": args.points, "first_s": f, "warm_s": b, "spec": str(y.sharding.spec)}
+    del y
+    normals = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    normals[:, 2] = np.abs(normals[:, 2])
+    views = np.broadcast_to([0.0, 0.0, 1.0], normals.shape)
+    sn, sv = jax.device_put(normals, rows_on), jax.device_put(np.ascontiguousarray(views), rows_on)
+    light = caps[0][1]
+    brdf = jaxsh.TorranceSparrow(kd=[0.3, 0.2, 0.1], ks=[0.4, 0.4, 0.4], mu=1.5, sigma=0.15)
+    f, b, y = timed(lambda: jaxsh.render_practical(sn, sv, brdf, light, method="exact"), reps=3)
+    out["render_practical"] = {"n": args.points, "first_s": f, "warm_s": b, "spec": str(y.total.sharding.spec)}
     if args.peer:
         sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
         from threadpoolctl import threadpool_limits
@@ -102,6 +124,8 @@ def main():
     ap.add_argument("--views", type=int, default=24)
     ap.add_argument("--size", type=int, default=24)
     ap.add_argument("--devices", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--points", type=int, default=2 ** 17,
+                    help="directions / pixels of the kernels' row (real_sh lmax 16, render_practical exact)")
     ap.add_argument("--gpu", action="store_true", help="count GPUs instead of forced host devices")
     ap.add_argument("--json", help="write the measurements here")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
@@ -122,7 +146,7 @@ def main():
             env["JAX_PLATFORMS"] = "cpu"
             env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={d}"
         cmd = [sys.executable, os.path.abspath(__file__), "--child", str(d), "--batch", str(args.batch), "--views",
-               str(args.views), "--size", str(args.size)] + (["--peer"] if d == args.devices[0] else [])
+               str(args.views), "--size", str(args.size), "--points", str(args.points)] + (["--peer"] if d == args.devices[0] else [])
         p = subprocess.run(cmd, env=env, capture_output=True, text=True)
         if p.returncode != 0:
             raise SystemExit(p.stderr[-3000:])
@@ -139,6 +163,14 @@ def main():
               f"{r['large_factorize']['warm_s']:13.3f} {e('large_factorize'):5.2f} | "
               f"{r['batch']['first_s']:.1f} / {r['large_fit_brdf']['first_s']:.1f} / "
               f"{r['large_inverse_lighting']['first_s']:.1f} / {r['large_factorize']['first_s']:.1f}")
+    print(f"\nkernels on sharded arrays, {base['real_sh']['n']} points: real_sh lmax 16 / render_practical exact "
+          f"(the lighting of the batch's first capture), warm s, efficiency, output spec")
+    for r in rows:
+        d = r["devices"] / base["devices"]
+        e = lambda k: base[k]["warm_s"] / (d * r[k]["warm_s"])  # noqa: E731
+        print(f"{r['devices']:>7} | real_sh {r['real_sh']['warm_s']:.3f} {e('real_sh'):5.2f} {r['real_sh']['spec']:<18} | "
+              f"render_practical {r['render_practical']['warm_s']:.3f} {e('render_practical'):5.2f} "
+              f"{r['render_practical']['spec']}")
     peer = base.get("peer_batch_s")
     if peer is not None:
         print(f"peer: numpy/scipy serial loop of the same {args.batch} fits (1 BLAS thread): {peer:.2f} s "
