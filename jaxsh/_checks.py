@@ -145,12 +145,17 @@ def error_if_any(x, bad, msg: str):
     condition is reduced to a scalar, the error is attached to an unsigned integer 0 (`_error_token`), and `x`
     is returned with that 0 OR-ed into its bits: exactly `x` (signed zeros, subnormals, infinities and NaN
     payloads included), still carrying the check as a data dependence, for one fused bitwise operation. Its
-    derivative is that of the identity. Non-float `x` goes through `equinox.error_if` unchanged.
+    derivative is that of the identity. Integers are OR-ed the same way, complex numbers part by part, booleans
+    by a logical or with `False`.
     """
     x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        return eqx.error_if(x, jnp.any(bad), msg)
-    return _or_bits(x, _error_token(jnp.any(bad), msg, _UINT[x.dtype.itemsize]))
+    pred = jnp.any(bad)
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        token = _error_token(pred, msg, _UINT[x.real.dtype.itemsize])
+        return jax.lax.complex(_or_bits(x.real, token), _or_bits(x.imag, token))
+    if x.dtype == jnp.bool_:
+        return x | _error_token(pred, msg, jnp.uint8).astype(bool)
+    return _or_bits(x, _error_token(pred, msg, _UINT[x.dtype.itemsize]))
 
 
 def error_if(x: ArrayLike, pred: Bool[ArrayLike, "..."], msg: str) -> Array:
@@ -162,8 +167,8 @@ def error_if(x: ArrayLike, pred: Bool[ArrayLike, "..."], msg: str) -> Array:
     inside a `jax.errors.JaxRuntimeError`); the `EQX_ON_ERROR` environment variable (`nan`, `off`,
     `breakpoint`) is honoured. Two differences, both for several devices:
 
-    - a floating `x` keeps its sharding: the check is attached to its bits, not passed through a conditional
-      that XLA places on one device;
+    - `x` keeps its sharding: the check is attached to its bits, not passed through a conditional that XLA
+      places on one device;
     - in a process with more than one device, the error is raised by a host callback on *every* device of the
       program (`jax.debug.callback(..., partitioned=True)`). `equinox.error_if` raises on one device only; the
       others then wait for it in the program's next collective until XLA aborts the process (measured on 2-4
@@ -172,7 +177,7 @@ def error_if(x: ArrayLike, pred: Bool[ArrayLike, "..."], msg: str) -> Array:
 
     **Arguments:**
 
-    - `x`: an array (float: returned bit for bit; other dtypes: through `equinox.error_if`).
+    - `x`: an array of any dtype, returned bit for bit.
     - `pred`: a boolean array; any true entry is an error.
     - `msg`: the error message.
 
@@ -260,7 +265,7 @@ def _error_token(pred, msg: str, dtype):
     return jax.lax.cond(pred, fail, lambda: zero)
 
 
-_UINT = {2: jnp.uint16, 4: jnp.uint32, 8: jnp.uint64}
+_UINT = {1: jnp.uint8, 2: jnp.uint16, 4: jnp.uint32, 8: jnp.uint64}
 
 
 @jax.custom_jvp

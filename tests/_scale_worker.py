@@ -476,12 +476,15 @@ def run_checks():
     mapped = total(jax.shard_map(lambda d: jaxsh.real_sh(d, 4), mesh=mesh, in_specs=P("pixels", None),
                                  out_specs=P("pixels", None), check_vma=False))
     vmapped = total(jax.vmap(lambda v: jaxsh.error_if(v, v == 7.0, "no sevens")))
+    integers = total(lambda v: jaxsh.error_if(v, v == 7, "no sevens"))
     values = np.arange(n, dtype=np.float64).reshape(-1, 4) + 10.0
     cases = {
         "real_sh": (sh, (jax.device_put(dirs, rows),), (jax.device_put(bad_dirs, rows),), "zero-length"),
         "shard_map": (mapped, (jax.device_put(dirs, rows),), (jax.device_put(bad_dirs, rows),), "zero-length"),
         "vmap": (vmapped, (jax.device_put(values, rows),), (jax.device_put(np.where(values == n + 5.0, 7.0, values),
                                                                              rows),), "no sevens"),
+        "integers": (integers, (jax.device_put(np.arange(8, 8 + n), flat),),
+                     (jax.device_put(np.arange(n) + 7 * (np.arange(n) == n - 2), flat),), "no sevens"),
     }
     out = {"devices": len(jax.devices()), "effects": bool(jax.make_jaxpr(lambda d: jaxsh.real_sh(d, 4))(dirs).effects)}
     for name, (f, good, bad, text) in cases.items():

@@ -455,6 +455,13 @@ def test_public_error_if_on_one_device():
         f(x.at[0].set(6.0)).block_until_ready()
     with pytest.raises(ValueError, match="`msg` must be a str"):
         jaxsh.error_if(x, x > 5.0, 3)
+    # every dtype comes back bit for bit (integers OR-ed like floats, complex part by part, booleans by `| False`)
+    for v in (jnp.array([3, -4], jnp.int32), jnp.array([200, 4], jnp.uint8), jnp.array([True, False]),
+              jnp.array([1 + 2j, -0.0 - 3j]), jnp.array([jnp.nan + 1j], jnp.complex64)):
+        y = eqx.filter_jit(lambda a: jaxsh.error_if(a, jnp.zeros(a.shape, bool), "never"))(v)
+        assert y.dtype == v.dtype and np.array_equal(np.asarray(y).view(np.uint8), np.asarray(v).view(np.uint8)), v
+        with pytest.raises(eqx.EquinoxRuntimeError, match="always"):
+            eqx.filter_jit(lambda a: jaxsh.error_if(a, jnp.ones(a.shape, bool), "always"))(v).block_until_ready()
 
 
 def test_run_time_checks_return_their_argument_exactly():

@@ -127,7 +127,7 @@ def test_fit_many_one_degenerate_member_vmapped_and_sharded_batch():
 @pytest.mark.parametrize("on_error", ["raise", "nan"])
 def test_failed_check_on_several_devices_raises_instead_of_aborting(on_error):
     """A traced check that fails on one of 4 devices (`real_sh`'s direction check, the same inside `jax.shard_map`,
-    `jaxsh.error_if` under `vmap`), followed by a collective. Through `equinox.error_if` the failing device raised
+    `jaxsh.error_if` under `vmap` and on integers), followed by a collective. Through `equinox.error_if` the failing device raised
     alone and XLA aborted the process after its 40 s rendezvous timeout (docs/howto_scale.md); now each case raises
     `equinox.EquinoxRuntimeError` with its message at once and the process goes on (the same call on good data
     gives the same value after the error). With `EQX_ON_ERROR=nan` the failed calls return NaN instead."""
@@ -135,12 +135,14 @@ def test_failed_check_on_several_devices_raises_instead_of_aborting(on_error):
     r = _worker("checks", env=env, timeout=300)
     assert r["devices"] == 4 and r["bits_equal"] and r["sharding_kept"]
     assert r["effects"] == (on_error == "raise")  # the program holds the per-device callback, equinox's otherwise
-    for name in ("real_sh", "shard_map", "vmap"):
+    for name in ("real_sh", "shard_map", "vmap", "integers"):
         got = r[name]
         assert np.isfinite(got["good"]) and got["good_again"] == got["good"], (name, got)
         if on_error == "raise":
             assert got["raised"] == ["EquinoxRuntimeError", True] and got["bad"] is None, (name, got)
             assert got["seconds"] < 10.0, (name, got)
+        elif name == "integers":  # equinox's "NaN" of an integer is its largest value
+            assert got["raised"] is None and got["bad"] != got["good"], (name, got)
         else:
             assert got["raised"] is None and np.isnan(got["bad"]), (name, got)
 
