@@ -445,7 +445,7 @@ def test_sharing_models_black_images():
 def test_public_error_if_on_one_device():
     """`jaxsh.error_if` is the checks' own route: on one device it is `equinox.error_if` on a scalar (no effect in
     the program, so JAX's fast dispatch path stays; the per-device callback of several devices is tested in
-    tests/test_scale.py), `x` returned bit for bit, `EquinoxRuntimeError` with the message when it fails."""
+    tests/test_scale_kernels.py), `x` returned bit for bit, `EquinoxRuntimeError` with the message when it fails."""
     x = jnp.array([1.0, -0.0, jnp.nan])
     f = eqx.filter_jit(lambda v: jaxsh.error_if(v, v > 5.0, "too large"))
     assert np.array_equal(np.asarray(f(x)).view(np.uint64), np.asarray(x).view(np.uint64))
