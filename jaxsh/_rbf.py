@@ -48,11 +48,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, Real
 from ._compile import jit
 from ._custom_types import SequenceLike
 
-from ._checks import as_float_array
+from ._checks import as_float_array, is_traced
 from ._reflectance import _frame, _prepare, _rusinkiewicz_local, _to_local, _uvw
 
 # Elements of the largest (chunk, K) distance block when `chunk` is automatic.
@@ -450,6 +451,34 @@ def _check_solve_inputs(centers, values, scale, smoothing):
     return c, v, s, rho.astype(c.dtype), single
 
 
+def _check_regular(c, rho) -> None:
+    """`rbf_fit`'s host checks of concrete centres: no repeated row when `rho` is 0 (or traced), and
+    $[1, \vec q]$ of full column rank (`rbf_fit`'s docstring). Traced centres pass unchecked."""
+    if is_traced(c):
+        return
+    q = np.asarray(c, dtype=np.float64)
+    if is_traced(rho) or float(rho) == 0.0:
+        order = np.lexsort(q.T[::-1])
+        same = np.all(q[order[1:]] == q[order[:-1]], axis=1)
+        if np.any(same):
+            i, j = sorted(order[np.argmax(same):][:2])
+            raise ValueError(
+                f"`centers` rows {i} and {j} are equal ({q[i].tolist()}): with `smoothing` = 0 the RBF system "
+                "(Zickler 2006 eq. 10) is singular; merge repeated samples (solvers.fit_sharing does) or give a "
+                "positive `smoothing`"
+            )
+    lo, hi = q.min(axis=0), q.max(axis=0)
+    box = np.where(hi > lo, hi - lo, 1.0)
+    p = np.concatenate([np.ones((q.shape[0], 1)), 2.0 * (q - lo) / box - 1.0], axis=1)  # as `rbf_solve` builds P
+    rank = np.linalg.matrix_rank(p)
+    if rank < p.shape[1]:
+        raise ValueError(
+            f"`centers` lie in an affine subspace of dimension {rank - 1} of their {q.shape[1]}-D space (e.g. "
+            "coplanar in 3-D): the degree-1 polynomial of the RBF system (Zickler 2006 eq. 10) is not determined; "
+            "drop the constant coordinates or use solvers.fit_sharing, which reports such data as a status"
+        )
+
+
 def rbf_solve(
     centers: Real[ArrayLike, "K d"],
     values: Real[ArrayLike, "K *C"],
@@ -541,11 +570,18 @@ def rbf_fit(
     $\\rho > 0$ it is the smoothing spline $\\Psi - \\rho I$ of sec. 5.1
     (Wahba 1990).
 
-    No value checks (jit-safe): duplicate or affinely degenerate (e.g.
-    coplanar) centres make the system singular and the model's arrays
-    non-finite or finite and meaningless (see `rbf_solve`);
-    `solvers.fit_sharing` checks its input for both, checks its solve at the
-    centres, and adds greedy centre selection.
+    **Singular systems.** Repeated centres (with `smoothing` = 0) and
+    centres in a proper affine subspace (e.g. coplanar in 3-D: the degree-1
+    polynomial is then not determined, whatever the smoothing) make eq. 10
+    singular, and its solve comes out non-finite or, worse, finite and
+    meaningless (`rbf_solve`). Concrete `centers` are therefore checked on
+    the host first (a sort of the rows and the rank of $[1, \vec q]$, both
+    far cheaper than the solve): either case is a `ValueError` naming the
+    rows or the rank. Under `jit` (traced centres) nothing is checked;
+    `solvers.fit_sharing` merges repeated samples, reports degenerate data as
+    a status, checks its solve at the centres and adds greedy centre
+    selection. Repeated centres with $\rho > 0$ are allowed: the smoothing
+    spline is then a weighted fit (as `scipy.interpolate.RBFInterpolator`).
 
     **Arguments:** `centers` `(K, d)` with $K \\ge d + 1$; `values` `(K,)` or
     `(K, C)`; `scale` `(d,)` the diagonal of $M$ (eq. 11), default ones;
@@ -562,6 +598,7 @@ def rbf_fit(
     k, d = c.shape
     if k < d + 1:
         raise ValueError(f"too few centres: `centers` has {k} rows but a degree-1 polynomial in {d}-D needs at least d + 1 = {d + 1}")
+    _check_regular(c, rho)
     lam, poly = _solve_jit(c, v, jnp.ones((k,), dtype=bool), s, rho, jnp.min(c, axis=0), jnp.max(c, axis=0))
     if single:
         lam, poly = lam[:, 0], poly[:, 0]

@@ -155,18 +155,41 @@ def test_rbf_solve_errors_and_singular(rng):
         jaxsh.rbf_solve(x, y, smoothing=np.zeros(2))
     with pytest.raises(ValueError, match="too few centres"):
         jaxsh.rbf_fit(x[:3], y[:3])
-    # repeated centres: the system is singular (no value checks here). The result is non-finite or finite and
-    # meaningless (docstring), never a usable interpolant: over 10 draws (was one draw, non-finite by luck; 28 of
-    # 30 draws came out finite, weights up to 2e18 and an error of 513 at the centres)
+    # repeated centres: the system is singular, and `rbf_solve` (jit-safe, no value checks) returns something
+    # non-finite or finite and meaningless (docstring), never a usable interpolant: over 10 draws (28 of 30 draws
+    # came out finite, weights up to 2e18 and an error of 513 at the centres). That is why `rbf_fit` checks
+    # concrete centres first (below).
     for seed in range(10):
         xs, ys = _samples(np.random.default_rng(seed), 10, 3)
         dup, ydup = np.concatenate([xs, xs[:1]]), np.concatenate([ys, ys[:1]])
-        model = jaxsh.rbf_fit(dup, ydup)
-        lam = np.asarray(model.weights)
+        lam, poly = (np.asarray(a) for a in jaxsh.rbf_solve(dup, ydup))
+        model = jaxsh.RBFModel(jnp.asarray(dup), jnp.asarray(lam), jnp.asarray(poly), jnp.ones(3))
         err = np.abs(np.asarray(model(dup)) - ydup).max() if np.all(np.isfinite(lam)) else np.inf
         assert not np.all(np.isfinite(lam)) or np.abs(lam).max() > 1e8 or err > 1e-6 * np.abs(ydup).max(), seed
     with pytest.raises(ValueError, match=r"got \(9,\)"):  # the shape as given (was reported as (9, 1))
         jaxsh.rbf_fit(x, y[:-1, 0] if y.ndim == 2 else y[:-1])
+
+
+def test_rbf_fit_rejects_singular_centres(rng):
+    """`rbf_fit` checks concrete centres on the host: a repeated centre at `smoothing` = 0 and centres in an affine
+    subspace (coplanar in 3-D, exactly or to rounding) make eq. 10 singular and are a `ValueError` naming the rows
+    or the dimension. A repeated centre with `smoothing` > 0 is a well-posed smoothing spline: equal to scipy's
+    `RBFInterpolator` on the same samples. Traced centres are not checked (`jit`)."""
+    from scipy.interpolate import RBFInterpolator
+
+    x, y = _samples(rng, 12, 3)
+    dup, ydup = np.concatenate([x[:5], x[3:4], x[5:]]), np.concatenate([y[:5], y[3:4] + 0.1, y[5:]])
+    with pytest.raises(ValueError, match=r"`centers` rows 3 and 5 are equal"):
+        jaxsh.rbf_fit(dup, ydup)
+    model = jaxsh.rbf_fit(dup, ydup, smoothing=0.05)
+    xt = rng.uniform(-1, 1, size=(50, 3))
+    ref = RBFInterpolator(dup, ydup, kernel="linear", degree=1, smoothing=0.05)(xt)
+    np.testing.assert_allclose(np.asarray(model(xt)), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+    for z in (np.zeros(12), 0.3 * x[:, 0] - 0.7 * x[:, 1] + 0.2):  # a coordinate plane, a tilted plane
+        with pytest.raises(ValueError, match="affine subspace of dimension 2 of their 3-D space"):
+            jaxsh.rbf_fit(np.c_[x[:, :2], z], y, smoothing=0.1)
+    jitted = jax.jit(lambda c, v: jaxsh.rbf_fit(c, v).weights)  # traced: no host check, the solve as it comes
+    assert jitted(dup, ydup).shape[0] == 13
 
 
 def test_rbf_auto_chunk():
