@@ -154,9 +154,11 @@ def main():
     base = rows[0]
     print(f"\n{'devices':>7} | {'batch warm s':>12} {'captures/s':>10} {'eff.':>5} | {'large fit s':>11} {'eff.':>5} | "
           f"{'large IL s':>10} {'eff.':>5} | {'large fact. s':>13} {'eff.':>5} | first calls (compile) s")
+    def efficiency(r, k):  # T_1 / (D T_D), D relative to the first row's device count
+        return base[k]["warm_s"] / (r["devices"] / base["devices"] * r[k]["warm_s"])
+
     for r in rows:
-        d = r["devices"] / base["devices"]
-        e = lambda k: base[k]["warm_s"] / (d * r[k]["warm_s"])  # noqa: E731
+        e = lambda k: efficiency(r, k)  # noqa: E731
         print(f"{r['devices']:>7} | {r['batch']['warm_s']:12.2f} {r['batch']['captures_per_s']:10.1f} {e('batch'):5.2f} | "
               f"{r['large_fit_brdf']['warm_s']:11.3f} {e('large_fit_brdf'):5.2f} | "
               f"{r['large_inverse_lighting']['warm_s']:10.4f} {e('large_inverse_lighting'):5.2f} | "
@@ -166,8 +168,7 @@ def main():
     print(f"\nkernels on sharded arrays, {base['real_sh']['n']} points: real_sh lmax 16 / render_practical exact "
           f"(the lighting of the batch's first capture), warm s, efficiency, output spec")
     for r in rows:
-        d = r["devices"] / base["devices"]
-        e = lambda k: base[k]["warm_s"] / (d * r[k]["warm_s"])  # noqa: E731
+        e = lambda k: efficiency(r, k)  # noqa: E731
         print(f"{r['devices']:>7} | real_sh {r['real_sh']['warm_s']:.3f} {e('real_sh'):5.2f} {r['real_sh']['spec']:<18} | "
               f"render_practical {r['render_practical']['warm_s']:.3f} {e('render_practical'):5.2f} "
               f"{r['render_practical']['spec']}")
