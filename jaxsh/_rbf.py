@@ -453,7 +453,7 @@ def _check_solve_inputs(centers, values, scale, smoothing):
 
 def _check_regular(c, rho) -> None:
     """`rbf_fit`'s host checks of concrete centres: no repeated row when `rho` is 0 (or traced), and
-    $[1, \vec q]$ of full column rank (`rbf_fit`'s docstring). Traced centres pass unchecked."""
+    $[1, \\vec q]$ of full column rank (`rbf_fit`'s docstring). Traced centres pass unchecked."""
     if is_traced(c):
         return
     q = np.asarray(c, dtype=np.float64)
@@ -575,12 +575,12 @@ def rbf_fit(
     polynomial is then not determined, whatever the smoothing) make eq. 10
     singular, and its solve comes out non-finite or, worse, finite and
     meaningless (`rbf_solve`). Concrete `centers` are therefore checked on
-    the host first (a sort of the rows and the rank of $[1, \vec q]$, both
+    the host first (a sort of the rows and the rank of $[1, \\vec q]$, both
     far cheaper than the solve): either case is a `ValueError` naming the
     rows or the rank. Under `jit` (traced centres) nothing is checked;
     `solvers.fit_sharing` merges repeated samples, reports degenerate data as
     a status, checks its solve at the centres and adds greedy centre
-    selection. Repeated centres with $\rho > 0$ are allowed: the smoothing
+    selection. Repeated centres with $\\rho > 0$ are allowed: the smoothing
     spline is then a weighted fit (as `scipy.interpolate.RBFInterpolator`).
 
     **Arguments:** `centers` `(K, d)` with $K \\ge d + 1$; `values` `(K,)` or

@@ -120,3 +120,30 @@ def test_model_fields_are_output_arrays(model):
     ):
         value = getattr(model, name)
         assert is_bearable(value, hints[name]), (name, type(value), getattr(value, "shape", None), hints[name])
+
+
+def test_docstrings_hold_no_control_characters():
+    """Every docstring of every module, function, class and method of `jaxsh` and `solvers` (private ones included)
+    is free of the control characters that a LaTeX command in a non-raw string becomes (`\\vec` is a vertical tab,
+    `\\rho` a carriage return, `\\beta` a backspace, `\\frac` a form feed, `\\alpha` a bell): the docstrings write
+    `\\\\vec`. Caught `rbf_fit`'s `$[1, \\vec q]$` and `$\\rho > 0$` (session 41)."""
+    import importlib
+    import pkgutil
+
+    bad_chars = "\a\b\f\v\r"
+    found = []
+    for pkg in (jaxsh, solvers):
+        for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
+            mod = importlib.import_module(info.name)
+            objs = [(info.name, mod)]
+            for name, obj in vars(mod).items():
+                if getattr(obj, "__module__", None) != mod.__name__:
+                    continue
+                objs.append((f"{info.name}.{name}", obj))
+                if inspect.isclass(obj):
+                    objs += [(f"{info.name}.{name}.{a}", v) for a, v in vars(obj).items() if callable(v)]
+            for where, obj in objs:
+                doc = getattr(obj, "__doc__", None)
+                if isinstance(doc, str) and any(c in doc for c in bad_chars):
+                    found.append(where)
+    assert not found, found
