@@ -7,8 +7,8 @@ The number of (forced host) devices is fixed when JAX starts, so these run in a 
     python tests/_scale_worker.py many [vmap] [sharded]  # fit_many, one degenerate member, batch sharded
     python tests/_scale_worker.py dist PORT RANK   # one of 2 jax.distributed processes
     python tests/_scale_worker.py checks           # failed run-time checks raise on every device
-    python tests/_scale_worker.py kernels          # per-point kernels inside jax.shard_map (check_vma=True)
-    python tests/_scale_worker.py top              # per-point kernels on sharded arrays: stay sharded, no gather
+    python tests/_scale_worker.py kernels          # per-point kernels inside jax.shard_map (check_vma=True), and
+                                                   # on sharded arrays (they stay sharded, nothing gathered)
 
 Prints one JSON line on stdout.
 """
@@ -514,10 +514,8 @@ if __name__ == "__main__":
         res = run_many(sys.argv[2:] or ("vmap", "sharded"))
     elif mode == "dist":
         res = run_dist(int(sys.argv[2]), int(sys.argv[3]))
-    elif mode == "top":
-        res = run_top()
-    elif mode == "kernels":
-        res = run_kernels()
+    elif mode == "kernels":  # both in one process: one JAX start
+        res = {"inside": run_kernels(), "top": run_top()}
     elif mode == "checks":
         res = run_checks()
     elif mode == "single":

@@ -5,10 +5,18 @@ Like tests/test_scale.py (whose `_worker` these use), in a subprocess on 4 force
 so that `pytest -n 2 --dist loadfile` can run it beside that one.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
 from .test_scale import _worker
+
+
+@functools.lru_cache(maxsize=None)
+def _kernels():
+    """The worker's `kernels` mode once for the two kernel tests (one JAX process)."""
+    return _worker("kernels", timeout=300)
 
 
 @pytest.mark.parametrize("on_error", ["raise", "nan"])
@@ -40,7 +48,7 @@ def test_kernels_inside_shard_map_with_its_default_checks():
     `torrance_sparrow` and `rbf_evaluate` inside a user's `jax.shard_map` with its default `check_vma=True`, on 4
     devices, equal the one-device call. `real_sh`'s loops started from constant carries, which that check rejected
     at trace time (`TypeError: scan body function carry input and carry output must have equal types`)."""
-    r = _worker("kernels", timeout=300)
+    r = dict(_kernels()["inside"])
     assert r.pop("devices") == 4
     for name, err in r.items():
         assert not isinstance(err, str), (name, err)
@@ -53,7 +61,7 @@ def test_kernels_on_sharded_arrays_stay_sharded():
     points, equal the one-device call, and no program they compiled gathers the points. Before, `real_sh` beyond
     degree 2 and `practical_terms` gathered every point into each device's loop and returned replicated arrays, and
     `render_practical` padded the pixels on the host and rendered them on one device."""
-    r = _worker("top", timeout=300)
+    r = dict(_kernels()["top"])
     assert r.pop("devices") == 4
     assert r.pop("gathers") == {}
     for name, got in r.items():
