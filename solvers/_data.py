@@ -313,7 +313,8 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
     The visibility terms of a lighting part that `lighting` lacks are not used.
 
     Where it runs: pixels sharded over devices (`shard_observations`), each device makes its own pixels' terms
-    (`solvers._pixel_sums`); many pixels on one CPU device (at least 16,384 a core), with slow lighting, the
+    (`solvers._pixel_sums`; with lightings per view, where none has a slow part, every pixel under its own view's
+    sources, `_fast_terms_by_view`; lightings per view with a slow part are made view by view and replicated); many pixels on one CPU device (at least 16,384 a core), with slow lighting, the
     pixels are cut into one part per core, each made in its own host thread, and joined: XLA:CPU runs the band
     sums' loop on one core (`solvers._pixel_threads`; the same values, bitwise). Inside a caller's `jit`, one
     call.
@@ -337,6 +338,10 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
         raise ValueError(
             f"`obs.fast_visibility` has {obs.fast_visibility.shape[1]} columns, `lighting` has up to {jmax} fast sources per view"
         )
+    if pixel_sharding(obs.normals) is not None and all(lit.slow_sh is None for lit in lights):
+        # sharded pixels, one light (or a few) per image and no slow part: every pixel's terms from its own view's
+        # sources, on the devices that hold the pixels (view by view, `obs.subset` gathers them)
+        return _fast_terms_by_view(obs, lights, c, jmax)
     fold = jmax > 0 and c > 1
     jc = jmax * c if fold else jmax
     parts, order = [], []
@@ -370,6 +375,76 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
         cols = [x[inv] for x in cols]
     energy = jnp.tile(jnp.eye(c, dtype=dt), (jmax, 1)) if fold else jnp.ones((jmax, 1), dt)
     return jaxsh.PracticalTerms(*cols, energy)
+
+
+def _fast_tables(lights: list[Lighting], c: int, jmax: int, dt):
+    """The per-view fast sources as tables indexed by view: directions `(V, J, 3)`, energies `(V, J, C)` (a grey
+    lighting broadcast to the C channels), and whether each entry is a source `(V, J)` (from the shapes). A view
+    with fewer than `jmax` sources is padded with +z of zero energy. Made in NumPy and placed once when the
+    lightings are concrete (eager `jnp` operations compile a small program per shape), else traced."""
+    xp = jnp if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(lights)) else np
+    real = np.zeros((len(lights), jmax), bool)
+    dirs = xp.zeros((len(lights), jmax, 3), dt) + xp.asarray([0.0, 0.0, 1.0], dt)
+    energy = xp.zeros((len(lights), jmax, c), dt)
+    for k, lit in enumerate(lights):
+        j = 0 if lit.fast_directions is None else lit.fast_directions.shape[0]
+        real[k, :j] = True
+        if j == 0:
+            continue
+        d, e = xp.asarray(lit.fast_directions, dt), xp.broadcast_to(xp.asarray(lit.fast_energy, dt), (j, c))
+        if xp is np:
+            dirs[k, :j], energy[k, :j] = d, e
+        else:
+            dirs, energy = dirs.at[k, :j].set(d), energy.at[k, :j].set(e)
+    if xp is np:
+        dirs, energy = jax.device_put(dirs), jax.device_put(energy)
+    return dirs, energy, jax.device_put(real)
+
+
+def _fast_terms_by_view(obs: Observations, lights: list[Lighting], c: int, jmax: int) -> jaxsh.PracticalTerms:
+    """`practical_terms_for` with one `Lighting` per view, none with a slow part (photometric stereo, light stages:
+    one light per image): each pixel's terms under its own view's fast sources (`_fast_tables`, gathered by
+    `obs.view_index`), `jaxsh.practical_terms` `vmap`ped over the pixels, in one compiled program whatever the
+    number of views. Used for sharded pixels (`practical_terms_for`): view by view, `obs.subset` would gather them.
+    On one device the view-by-view path stays: this one, though one program for views of any sizes (terms of 24
+    views of 153 × 128: 38 against 96 ms warm), rounds `theta_h` and the irradiance differently in the last bit,
+    which moved `fit_brdf`'s Levenberg-Marquardt from 5 to 9 steps on `bench_capture.py --small` (0.89 → 1.06 s
+    warm; docs/performance.md, "Thirty-fifth round"). The columns are the general path's: with C > 1, `theta_h` and `fast_weight` hold column `j C + c'` for source j and
+    channel c' ($V_j L_{j,c'}$ in `fast_weight`) and `fast_energy` is the `(J C, C)` channel selector; a padding
+    source's columns are 0. Pixels sharded over devices (`shard_observations`) stay where they are."""
+    dt = obs.normals.dtype
+    dirs, energy, real = _fast_tables(lights, c, jmax, dt)
+    fvis = None if obs.fast_visibility is None else obs.fast_visibility[:, :jmax]
+    pixels = (obs.normals, obs.views, obs.view_index, fvis)
+    cols = _fast_terms_jit(pixels, (dirs, energy, real), pixel_sharding(obs.normals))
+    fold = c > 1
+    sel = jnp.tile(jnp.eye(c, dtype=dt), (jmax, 1)) if fold else jnp.ones((jmax, 1), dt)
+    return jaxsh.PracticalTerms(*cols, sel)
+
+
+@jaxsh.jit
+def _fast_terms_jit(pixels, tables, where):
+    """The per-pixel fields of `_fast_terms_by_view` (`where`: `pixel_sharding`, or None for one device)."""
+    dirs, energy, real = tables
+    c = energy.shape[2]
+
+    def local(n, v, vi, fvis):
+        def one(n1, v1, d, e, fv):
+            return jaxsh.practical_terms(n1[None], v1[None], fast_directions=d, fast_energy=e,
+                                         fast_visibility=None if fv is None else fv[None])
+
+        e = energy[vi]  # (N, J, C)
+        t = jax.vmap(one)(n, v, dirs[vi], e, fvis)
+        th = jnp.where(real[vi], t.theta_h[:, 0], 0.0)  # (N, J): a padding source's half angle 0, as the general path's
+        w = t.fast_weight[:, 0]
+        npx = n.shape[0]
+        if c > 1:  # column j*c + c': theta_h_j, V_j L_{j,c'}
+            th, w = jnp.repeat(th, c, axis=1), (w[:, :, None] * e).reshape(npx, -1)
+        else:
+            w = w * e[:, :, 0]
+        return t.visible[:, 0], t.cos_o[:, 0], t.irradiance[:, 0], t.bands[:, 0], th, w
+
+    return map_over_pixels(local, where, pixels)
 
 
 def _terms_one(obs: Observations, lighting: Lighting, chunk: int) -> jaxsh.PracticalTerms:

@@ -3,7 +3,8 @@
 The number of (forced host) devices is fixed when JAX starts, so these run in a subprocess started with
 `XLA_FLAGS=--xla_force_host_platform_device_count=D`. Usage:
 
-    python tests/_scale_worker.py equal            # sharded == one-device, 3 solvers, uneven N
+    python tests/_scale_worker.py equal            # sharded == one-device, 3 solvers, uneven N ([perview]: one
+                                                   # light per view)
     python tests/_scale_worker.py many [vmap] [sharded]  # fit_many, one degenerate member, batch sharded
     python tests/_scale_worker.py dist PORT RANK   # one of 2 jax.distributed processes
     python tests/_scale_worker.py checks           # failed run-time checks raise on every device
@@ -49,6 +50,38 @@ def make_capture(size=24, n_views=2, seed=0, lmax=8, noise=0.01, scale=1.0):
         gbs.append(gb)
         imgs.append(img)
     return solvers.observations(gbs, imgs), lighting
+
+
+def light_stage_capture(size=24, n_views=5, seed=0, noise=0.01):
+    """Each view under its own directional light (photometric stereo, a light stage), no slow lighting: view k lit
+    from 25 degrees off its camera, grey lights and RGB ones, one view with a second light. Returns the observations
+    and the list of one `Lighting` per view."""
+    import jax.numpy as jnp
+
+    import jaxsh
+    import solvers
+
+    brdf = solvers.TorranceSparrow(jnp.asarray(TRUTH["kd"]), jnp.asarray(TRUTH["ks"]), jnp.asarray(TRUTH["mu"]),
+                                   jnp.asarray(TRUTH["sigma"]))
+    rng = np.random.default_rng(seed)
+    gbs, imgs, lights = [], [], []
+    for k, cam in enumerate(solvers.view_cameras(n_views, size)):
+        gb = jaxsh.sphere_gbuffer(cam, jnp.zeros(3), jnp.asarray(1.0))
+        m = np.asarray(gb.mask)
+        to_cam = np.asarray(gb.view)[m].mean(0)
+        side = np.cross(to_cam, [0.3, 0.5, 0.8])
+        d = np.cos(0.44) * to_cam / np.linalg.norm(to_cam) + np.sin(0.44) * side / np.linalg.norm(side)
+        dirs, energy = [d], [[1.0, 0.9, 0.8] if k % 2 else [1.1]]
+        if k == 1:
+            dirs.append(np.cos(0.8) * to_cam / np.linalg.norm(to_cam) - np.sin(0.8) * side / np.linalg.norm(side))
+            energy.append([0.4, 0.5, 0.6])
+        lit = solvers.Lighting(None, jnp.asarray(np.array(dirs)), jnp.asarray(np.array(energy)))
+        img = np.asarray(solvers.predict(brdf, lit, gb.normal, gb.view, mask=gb.mask))
+        img = np.where(m[..., None], img + noise * np.sqrt(np.mean(img[m] ** 2)) * rng.normal(size=img.shape), 0.0)
+        gbs.append(gb)
+        imgs.append(img)
+        lights.append(lit)
+    return solvers.observations(gbs, imgs), lights
 
 
 def uneven(obs, multiple=4):
@@ -159,7 +192,38 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
             out[f"inverse_lighting_collectives_literal_{lit}"] = [text.count("all-gather("), text.count("all-reduce(")]
     if "factorize" in which:
         out.update(_factorize_equal(obs, sobs))
+    if "perview" in which:
+        out["perview"] = _perview_equal(len(jax.devices()))
     return out
+
+
+def _perview_equal(k):
+    """`fit_brdf` of `light_stage_capture` (one lighting per view, fast sources only) on sharded pixels against one
+    device, the specs of its per-pixel terms, and the all-gathers of the programs of `solvers._data` it compiled."""
+    import jax
+
+    import solvers
+    from solvers import _data
+
+    obs, lights = light_stage_capture()
+    obs = uneven(obs, k)
+    sobs = solvers.shard_observations(obs, solvers.pixel_mesh())
+    ref = solvers.fit_brdf(obs, lights)
+    counter = _gathers_of(_data)
+    with counter as gathers:
+        terms = solvers.practical_terms_for(sobs, lights)
+        jax.block_until_ready(terms)
+    got = solvers.fit_brdf(sobs, lights)
+    n = obs.n_samples
+    import equinox as eqx
+
+    got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[:n])
+    one = solvers.practical_terms_for(obs, lights)
+    diff = max(float(np.max(np.abs(np.asarray(a)[:n].astype(float) - np.asarray(b).astype(float))))
+               for a, b in zip(jax.tree.leaves(terms), jax.tree.leaves(one)) if np.ndim(b) and np.shape(b)[0] == n)
+    return dict(compare(got, ref), status=[_status(got), _status(ref)], sigma=[float(got.brdf.sigma), float(ref.brdf.sigma)],
+                terms_specs={f: str(getattr(terms, f).sharding.spec) for f in ("irradiance", "theta_h", "fast_weight", "cos_o")},
+                terms_diff=diff, gathers=gathers, compiled=sorted({sig[0] for sig in counter.seen}), views=len(lights), n=n)
 
 
 def _compiled_by(call):

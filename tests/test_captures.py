@@ -1,5 +1,6 @@
 """Real-capture shapes (issue 11): lighting per image, identifiability reporting, per-texel results in `predict`."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -7,7 +8,7 @@ import pytest
 import jaxsh
 import solvers
 
-from .helpers import quadrature_images, write_png16
+from .helpers import Compiles, quadrature_images, write_png16
 
 C2W = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 10], [0, 0, 0, 1]], float)  # looks down -z
 TRUE = jaxsh.TorranceSparrow(jnp.asarray([0.5, 0.4, 0.3]), jnp.asarray([0.3, 0.35, 0.4]), 1.5, 0.2)
@@ -30,14 +31,14 @@ def _one_light(d, e=(1.0, 1.0, 1.0)):
     return solvers.Lighting(None, jnp.asarray(d[None]), jnp.asarray(np.asarray(e, float)[None]))
 
 
-def _views(rng, k):
+def _views(rng, k, radii=None):
     cams = []
     for _ in range(k):
         eye = rng.normal(size=3)
         eye = 6 * eye / np.linalg.norm(eye)
         up = np.array([0, 0, 1.0]) if abs(eye[2]) < 5 else np.array([1.0, 0, 0])
         cams.append(jaxsh.OrthographicCamera(0.08, 26, 26, jaxsh.look_at(eye, np.zeros(3), up)))
-    return [jaxsh.sphere_gbuffer(c, np.zeros(3), 1.0) for c in cams]
+    return [jaxsh.sphere_gbuffer(c, np.zeros(3), r) for c, r in zip(cams, radii or (1.0,) * k)]
 
 
 # --------------------------------------------------------------------------- lighting per image
@@ -94,6 +95,56 @@ def test_per_view_terms_are_each_views_own(rng):
         solvers.fit_brdf(obs, [lights[0], "sun", lights[2]])
     with pytest.raises(ValueError, match="`lighting`"):
         solvers.fit_brdf(obs, "sun")
+
+
+def test_per_view_fast_lights_terms_are_each_views_own_in_one_program(rng):
+    """One light (or two) per view and no slow lighting, the photometric-stereo and light-stage case, which
+    `practical_terms_for` makes on sharded pixels for all pixels at once from each pixel's own view's sources
+    (`solvers._data._fast_terms_by_view`, here on one device; the sharded call: tests/test_scale.py): each view's
+    rows equal `jaxsh.practical_terms` of that view alone under its own lighting (grey and RGB lights, a view with
+    two sources, with and without the shadow visibility), the columns are those of the view-by-view path, and
+    views of different sizes cost one program."""
+    from solvers._data import _fast_terms_by_view
+
+    gbs = _views(rng, 4, radii=(1.0, 0.8, 0.9, 0.7))
+    assert len({int(np.sum(np.asarray(g.mask))) for g in gbs}) == 4  # views of different sizes
+    ld = _lights(5, 3)
+    lights = [_one_light(ld[0], (0.7, 0.2, 0.4)),
+              solvers.Lighting(None, jnp.asarray(ld[1][None]), jnp.asarray([[1.3]])),  # grey
+              solvers.Lighting(None, jnp.asarray(ld[2:4]), jnp.asarray([[1.0, 0.9, 0.8], [0.3, 0.2, 0.6]])),
+              _one_light(ld[4])]
+    imgs = [np.ones(g.mask.shape + (3,)) for g in gbs]
+    fvis = [rng.uniform(0.0, 1.0, g.mask.shape + (2,)) for g in gbs]
+    vi = None
+    for obs in (solvers.observations(gbs, imgs), solvers.observations(gbs, imgs, fast_visibility=fvis)):
+        with Compiles() as c:
+            terms = _fast_terms_by_view(obs, lights, 3, 2)
+        # one program for the terms, whatever the views' sizes (view by view: one per distinct view size)
+        assert c.names == ["jit(_fast_terms_jit)"], c.names
+        general = solvers.practical_terms_for(obs, lights)  # one device: view by view
+        for a, b in zip(jax.tree.leaves(terms), jax.tree.leaves(general)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-15)
+        vi = np.asarray(obs.view_index)
+        assert terms.theta_h.shape == terms.fast_weight.shape == (obs.n_samples, 2 * 3)
+        np.testing.assert_array_equal(np.asarray(terms.fast_energy), np.tile(np.eye(3), (2, 1)))
+        for brdf in (TRUE, jaxsh.TorranceSparrow(jnp.asarray([0.2, 0.1, 0.4]), jnp.asarray([0.6, 0.1, 0.2]), None, 0.07)):
+            got = np.asarray(terms(brdf))
+            for k, lit in enumerate(lights):
+                sel = vi == k
+                fv = None if obs.fast_visibility is None else obs.fast_visibility[sel][:, : lit.fast_directions.shape[0]]
+                want = jaxsh.practical_terms(obs.normals[sel], obs.views[sel], lit, fast_visibility=fv)(brdf)
+                np.testing.assert_allclose(got[sel], np.broadcast_to(np.asarray(want), got[sel].shape), rtol=0, atol=1e-12)
+        # a view with one source: its second pair of columns is padding, weight 0 and half angle 0
+        one = vi == 0
+        assert np.all(np.asarray(terms.fast_weight)[one][:, 3:] == 0) and np.all(np.asarray(terms.theta_h)[one][:, 3:] == 0)
+    # grey lights only: one channel, no channel columns
+    grey = [solvers.Lighting(None, jnp.asarray(d[None]), jnp.asarray([[e]])) for d, e in zip(ld[:4], (1.0, 0.5, 2.0, 1.5))]
+    t1 = _fast_terms_by_view(obs, grey, 1, 1)
+    assert t1.theta_h.shape == (obs.n_samples, 1) and t1.fast_energy.shape == (1, 1)
+    for k, lit in enumerate(grey):
+        sel = vi == k
+        want = jaxsh.practical_terms(obs.normals[sel], obs.views[sel], lit, fast_visibility=obs.fast_visibility[sel][:, :1])
+        np.testing.assert_allclose(np.asarray(t1(TRUE))[sel], np.asarray(want(TRUE)), rtol=0, atol=1e-12)
 
 
 def test_photometric_stereo_fit_from_reference_images():

@@ -59,7 +59,7 @@ def _worker(*args, devices=4, timeout=600, env=None):
 
 
 def test_sharded_solvers_equal_one_device_with_uneven_pixels():
-    r = _worker("equal", "fit_brdf", "inverse_lighting")
+    r = _worker("equal", "fit_brdf", "inverse_lighting", "perview")
     assert r["devices"] == 4 and r["shards"] == 4
     assert r["n"] % 4 != 0 and r["n_padded"] % 4 == 0 and r["n_padded"] - r["n"] < 4
     for name in ("fit_brdf", "inverse_lighting"):
@@ -80,6 +80,15 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
     # again at every call: 1.1 s warm against 0.03 s, 3,008 pixels on 2 devices)
     assert r["fit_brdf_again_compiles"] == [], r["fit_brdf_again_compiles"]
     assert r["fitted_padding_is_sample_0"]  # `fitted` of the padded samples: sample 0's geometry (compared above: the rest)
+    # one light per view, no slow lighting (a light stage): the terms made on each device's pixels from each pixel's
+    # own view's sources, and kept there (the per-view path made them view by view on one device and replicated
+    # them: P() on every field)
+    pv = r["perview"]
+    assert pv["views"] == 5 and pv["n"] % 4 != 0
+    assert pv["status"][0] == pv["status"][1] == "converged" and _agrees(pv["rel"], pv["steps"]), pv
+    assert abs(pv["sigma"][1] - 0.15) < 0.01  # a real fit
+    assert set(pv["terms_specs"].values()) == {"P('pixels',)"}, pv["terms_specs"]
+    assert pv["terms_diff"] < 1e-14 and pv["gathers"] == {} and "_fast_terms_jit" in pv["compiled"], pv
 
 
 # factorize's stage 1 finds K_s by golden section and mu by a parabola through RSS values: a minimizer located
