@@ -14,7 +14,8 @@ objects (sec. 6.4) — so the simplex minimizes the *profiled* residual
 (variable projection). It is started from the best point of a small grid
 (both on at most `search_pixels` samples). When they ran on a subset, the
 estimate is refined on all samples by
-`optimistix.LevenbergMarquardt` on the same profiled residual, with its
+Levenberg-Marquardt (`optimistix`'s, with a trust region that also accepts a step whose loss changed only by
+rounding: `solvers._lm`) on the same profiled residual, with its
 exact autodiff Jacobian through the inner solves (homogeneous BRDFs; Golub &
 Pereyra 1973: its minimizer is the joint one over all parameters, measured
 equal to 1e-13 on 3×256², and the Jacobian has 2 columns instead of
@@ -44,6 +45,7 @@ import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow, practical_terms_for, view_lightings
 from ._jacobian import explicit_jacobian
+from ._lm import LevenbergMarquardt
 from ._normal_equations import (covariance_from_gram, covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2,
                                 solve_grouped_shared_nonneg, solve_sym2_min_norm)
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
@@ -492,7 +494,7 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
 
         p0 = u.astype(pdt)
         # `explicit_jacobian`: the solver's state then holds the (m, 2) Jacobian, not the residual's intermediates
-        lm = optx.least_squares(explicit_jacobian(resid), optx.LevenbergMarquardt(rtol=rtol, atol=atol), p0,
+        lm = optx.least_squares(explicit_jacobian(resid), LevenbergMarquardt(rtol=rtol, atol=atol), p0,
                                 max_steps=max_steps, throw=False)
         p1 = lm.value
         # both ends in one batched evaluation, which is also the final evaluation (the estimate, the residual and the

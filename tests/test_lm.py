@@ -1,0 +1,111 @@
+"""`solvers._lm`: Levenberg-Marquardt that accepts a step whose loss changed only by rounding.
+
+References: the trust region's acceptance rule on hand-made losses (one ulp above, well above, below the last
+accepted one) against `optimistix.ClassicalTrustRegion`'s; the solution against `scipy.optimize.least_squares`
+and against a linear problem's closed form."""
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+import pytest
+import scipy.optimize
+
+from solvers._lm import _FLAT, LevenbergMarquardt, RoundingTrustRegion
+
+
+def _info(residual, jac):
+    return optx.FunctionInfo.ResidualJac(jnp.asarray(residual), lx.MatrixLinearOperator(jnp.asarray(jac)))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_trust_region_accepts_a_loss_changed_by_rounding_only(dtype):
+    """A step whose loss is one ulp above the last accepted loss, predicted to fall by far less than that, is
+    rejected by optimistix's trust region (which shrinks by 1/4) and accepted here with the size kept; a loss
+    clearly above is rejected by both, alike; a loss that falls as predicted is accepted by both, alike."""
+    jac = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    r0 = np.array([3.0, -4.0, 2.0])
+    y = jnp.zeros(2, dtype)
+    # a tiny step down the gradient J^T r0 = (5, -2): a predicted decrease (29 eps^2-ish) far below the loss's ulp
+    y_eval = jnp.asarray(-(1e-18 if dtype == jnp.float64 else 1e-10) * np.array([5.0, -2.0]), dtype)
+    f0 = _info(r0.astype(dtype), jac.astype(dtype))
+    loss0 = float(f0.as_min())
+    ulp = float(np.spacing(np.asarray(loss0, dtype)))
+
+    def with_loss(target):
+        # the last residual moved until 0.5 |r|^2, as the solver computes it, first reaches `target`
+        r = r0.astype(dtype)
+        while float(_info(r, jac.astype(dtype)).as_min()) < target:
+            r = r.copy()
+            r[2] = np.nextafter(r[2], dtype(np.inf))
+        return _info(r, jac.astype(dtype)), float(_info(r, jac.astype(dtype)).as_min())
+
+    ours, theirs = RoundingTrustRegion(), optx.ClassicalTrustRegion()
+    state = ours.init(y, None)
+    first = jnp.asarray(False)
+    up_one, loss_up = with_loss(loss0 + ulp)
+    assert loss0 < loss_up <= loss0 + 2 * ulp
+    size_o, acc_o, _, st_o = ours.step(first, y, y_eval, f0, up_one, state)
+    size_t, acc_t, _, _ = theirs.step(first, y, y_eval, f0, up_one, theirs.init(y, None))
+    assert not bool(acc_t) and float(size_t) == 0.25  # optimistix: rejected, the region shrunk
+    assert bool(acc_o) and float(size_o) == 1.0 and float(st_o.step_size) == 1.0
+    # well above rounding: both reject and shrink alike
+    up, _ = with_loss(loss0 * (1 + 4 * _FLAT * np.finfo(dtype).eps))
+    (s1, a1, _, _), (s2, a2, _, _) = (ours.step(first, y, y_eval, f0, up, state),
+                                      theirs.step(first, y, y_eval, f0, up, theirs.init(y, None)))
+    assert not bool(a1) and not bool(a2) and float(s1) == float(s2) == 0.25
+    # a real decrease (a full Gauss-Newton step of this linear model): both accept and grow alike
+    y_gn = -jnp.linalg.lstsq(jac.astype(dtype), r0.astype(dtype))[0]
+    down = _info((r0 + jac @ np.asarray(y_gn, np.float64)).astype(dtype), jac.astype(dtype))
+    (s1, a1, _, _), (s2, a2, _, _) = (ours.step(first, y, y_gn, f0, down, state),
+                                      theirs.step(first, y, y_gn, f0, down, theirs.init(y, None)))
+    assert bool(a1) and bool(a2) and float(s1) == float(s2) == 3.5
+
+
+def test_solution_matches_scipy_and_a_closed_form():
+    """An exponential decay fitted to noisy samples: the minimizer of scipy's `least_squares` (method "lm",
+    MINPACK) to 1e-9, in no more steps than optimistix's own Levenberg-Marquardt takes; a linear problem: its
+    least-squares solution (`numpy.linalg.lstsq`) to 1e-12."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 4.0, 20_000)
+    data = 2.5 * np.exp(-1.3 * t) + 0.4 + 0.01 * rng.normal(size=t.size)
+
+    def resid(p, _):
+        return p[0] * jnp.exp(-p[1] * t) + p[2] - data
+
+    p0 = jnp.asarray([1.0, 0.5, 0.0])
+    ours = optx.least_squares(resid, LevenbergMarquardt(rtol=1e-10, atol=1e-10), p0, max_steps=100, throw=False)
+    theirs = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), p0, max_steps=100, throw=False)
+    ref = scipy.optimize.least_squares(lambda p: np.asarray(resid(p, None)), np.asarray(p0), method="lm",
+                                       xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+    assert ours.result == optx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(ours.value), ref, rtol=1e-9)
+    assert int(ours.stats["num_steps"]) <= int(theirs.stats["num_steps"])
+
+    a = rng.normal(size=(500, 4))
+    b = rng.normal(size=500)
+    lin = optx.least_squares(lambda p, _: a @ p - b, LevenbergMarquardt(rtol=1e-12, atol=1e-12), jnp.zeros(4),
+                             max_steps=50, throw=False)
+    np.testing.assert_allclose(np.asarray(lin.value), np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-12, atol=1e-14)
+
+
+def test_jit_and_float32():
+    """Traced inside `jax.jit`, and in float32 in a process without float64 (a user's default; with float64 on,
+    optimistix's own Levenberg-Marquardt fails on float32 parameters too: its damping is float64), where the
+    loss's ulp is float32's."""
+    with jax.enable_x64(False):
+        t = jnp.linspace(0.0, 2.0, 1000)
+        data = 1.5 * jnp.exp(-0.7 * t) + 0.01 * jnp.sin(40.0 * t)
+
+        @jax.jit
+        def fit(p0):
+            sol = optx.least_squares(lambda p, _: p[0] * jnp.exp(-p[1] * t) - data, LevenbergMarquardt(1e-6, 1e-6),
+                                     p0, max_steps=100, throw=False)
+            return sol.value, sol.result
+
+        p, res = fit(jnp.asarray([1.0, 1.0]))
+        assert p.dtype == jnp.float32 and res == optx.RESULTS.successful
+    ref = scipy.optimize.least_squares(lambda q: q[0] * np.exp(-q[1] * np.asarray(t, float)) - np.asarray(data, float),
+                                       [1.0, 1.0], method="lm", xtol=1e-14, ftol=1e-14).x
+    np.testing.assert_allclose(np.asarray(p), ref, rtol=1e-5)
