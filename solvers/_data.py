@@ -301,7 +301,8 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
     `lighting` is one `Lighting` for every view, or a sequence of one
     `Lighting` per view (`obs.view_index`; photometric stereo, light stages).
     Per view, the terms are computed with that view's lighting and the rows
-    concatenated, so memory stays $O(N)$ (not $O(N \\times$ views$)$): the slow
+    concatenated (where no view's lighting has a slow part, every pixel's from its own view's sources at once:
+    `_fast_terms_by_view`), so memory stays $O(N)$ (not $O(N \\times$ views$)$): the slow
     bands are zero-padded to the largest $l_{max}$, and the fast sources (a
     view has $J_k \\le J$ of them) are stored per pixel: `theta_h` and
     `fast_weight` get $J\\,C$ columns (source $j$, channel $c$), `fast_weight`
@@ -313,9 +314,8 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
     The visibility terms of a lighting part that `lighting` lacks are not used.
 
     Where it runs: pixels sharded over devices (`shard_observations`), each device makes its own pixels' terms
-    (`solvers._pixel_sums`; with lightings per view, where none has a slow part, every pixel under its own view's
-    sources, `_fast_terms_by_view`; lightings per view with a slow part are made view by view and replicated); many pixels on one CPU device (at least 16,384 a core), with slow lighting, the
-    pixels are cut into one part per core, each made in its own host thread, and joined: XLA:CPU runs the band
+    (`solvers._pixel_sums`; lightings per view with a slow part are made view by view and replicated); many
+    pixels on one CPU device (at least 16,384 a core), with slow lighting, the pixels are cut into one part per core, each made in its own host thread, and joined: XLA:CPU runs the band
     sums' loop on one core (`solvers._pixel_threads`; the same values, bitwise). Inside a caller's `jit`, one
     call.
     """
@@ -338,9 +338,9 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
         raise ValueError(
             f"`obs.fast_visibility` has {obs.fast_visibility.shape[1]} columns, `lighting` has up to {jmax} fast sources per view"
         )
-    if pixel_sharding(obs.normals) is not None and all(lit.slow_sh is None for lit in lights):
-        # sharded pixels, one light (or a few) per image and no slow part: every pixel's terms from its own view's
-        # sources, on the devices that hold the pixels (view by view, `obs.subset` gathers them)
+    if all(lit.slow_sh is None for lit in lights):
+        # one light (or a few) per image and no slow part: every pixel's terms from its own view's sources, in one
+        # program, on the devices that hold the pixels (view by view, `obs.subset` gathers sharded pixels)
         return _fast_terms_by_view(obs, lights, c, jmax)
     fold = jmax > 0 and c > 1
     jc = jmax * c if fold else jmax
@@ -405,11 +405,12 @@ def _fast_terms_by_view(obs: Observations, lights: list[Lighting], c: int, jmax:
     """`practical_terms_for` with one `Lighting` per view, none with a slow part (photometric stereo, light stages:
     one light per image): each pixel's terms under its own view's fast sources (`_fast_tables`, gathered by
     `obs.view_index`), `jaxsh.practical_terms` `vmap`ped over the pixels, in one compiled program whatever the
-    number of views. Used for sharded pixels (`practical_terms_for`): view by view, `obs.subset` would gather them.
-    On one device the view-by-view path stays: this one, though one program for views of any sizes (terms of 24
-    views of 153 × 128: 38 against 96 ms warm), rounds `theta_h` and the irradiance differently in the last bit,
-    which moved `fit_brdf`'s Levenberg-Marquardt from 5 to 9 steps on `bench_capture.py --small` (0.89 → 1.06 s
-    warm; docs/performance.md, "Thirty-fifth round"). The columns are the general path's: with C > 1, `theta_h` and `fast_weight` hold column `j C + c'` for source j and
+    number of views or their sizes (view by view: a program per distinct view size, and `obs.subset` gathers
+    sharded pixels). Measured on one device (`bench_capture.py`'s capture, RGB energies, warm): 24 views of
+    153 × 128, 38 against 96 ms; 96 views of 306 × 256 (4.5 M pixels), 0.47 against 1.25 s and 221 against
+    493 MiB of peak memory. The values equal the view-by-view path's to the last bit or so (`theta_h` and the
+    irradiance are rounded differently; docs/performance.md, "Thirty-fifth round"). The columns are the
+    view-by-view path's: with C > 1, `theta_h` and `fast_weight` hold column `j C + c'` for source j and
     channel c' ($V_j L_{j,c'}$ in `fast_weight`) and `fast_energy` is the `(J C, C)` channel selector; a padding
     source's columns are 0. Pixels sharded over devices (`shard_observations`) stay where they are."""
     dt = obs.normals.dtype
@@ -417,9 +418,8 @@ def _fast_terms_by_view(obs: Observations, lights: list[Lighting], c: int, jmax:
     fvis = None if obs.fast_visibility is None else obs.fast_visibility[:, :jmax]
     pixels = (obs.normals, obs.views, obs.view_index, fvis)
     cols = _fast_terms_jit(pixels, (dirs, energy, real), pixel_sharding(obs.normals))
-    fold = c > 1
-    sel = jnp.tile(jnp.eye(c, dtype=dt), (jmax, 1)) if fold else jnp.ones((jmax, 1), dt)
-    return jaxsh.PracticalTerms(*cols, sel)
+    sel = np.tile(np.eye(c, dtype=dt), (jmax, 1)) if c > 1 else np.ones((jmax, 1), dt)  # placed without a program
+    return jaxsh.PracticalTerms(*cols, jax.device_put(sel))
 
 
 @jaxsh.jit

@@ -1,6 +1,5 @@
 """Real-capture shapes (issue 11): lighting per image, identifiability reporting, per-texel results in `predict`."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -99,12 +98,11 @@ def test_per_view_terms_are_each_views_own(rng):
 
 def test_per_view_fast_lights_terms_are_each_views_own_in_one_program(rng):
     """One light (or two) per view and no slow lighting, the photometric-stereo and light-stage case, which
-    `practical_terms_for` makes on sharded pixels for all pixels at once from each pixel's own view's sources
-    (`solvers._data._fast_terms_by_view`, here on one device; the sharded call: tests/test_scale.py): each view's
-    rows equal `jaxsh.practical_terms` of that view alone under its own lighting (grey and RGB lights, a view with
-    two sources, with and without the shadow visibility), the columns are those of the view-by-view path, and
-    views of different sizes cost one program."""
-    from solvers._data import _fast_terms_by_view
+    `practical_terms_for` makes for all pixels at once from each pixel's own view's sources (sharded pixels:
+    tests/test_scale.py): each view's rows equal `jaxsh.practical_terms` of that view alone under its own
+    lighting (grey and RGB lights, a view with two sources, with and without the shadow visibility), the columns
+    are those of the view-by-view path, and views of different sizes cost one program (view by view: one per
+    distinct view size)."""
 
     gbs = _views(rng, 4, radii=(1.0, 0.8, 0.9, 0.7))
     assert len({int(np.sum(np.asarray(g.mask))) for g in gbs}) == 4  # views of different sizes
@@ -118,12 +116,8 @@ def test_per_view_fast_lights_terms_are_each_views_own_in_one_program(rng):
     vi = None
     for obs in (solvers.observations(gbs, imgs), solvers.observations(gbs, imgs, fast_visibility=fvis)):
         with Compiles() as c:
-            terms = _fast_terms_by_view(obs, lights, 3, 2)
-        # one program for the terms, whatever the views' sizes (view by view: one per distinct view size)
+            terms = solvers.practical_terms_for(obs, lights)
         assert c.names == ["jit(_fast_terms_jit)"], c.names
-        general = solvers.practical_terms_for(obs, lights)  # one device: view by view
-        for a, b in zip(jax.tree.leaves(terms), jax.tree.leaves(general)):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-15)
         vi = np.asarray(obs.view_index)
         assert terms.theta_h.shape == terms.fast_weight.shape == (obs.n_samples, 2 * 3)
         np.testing.assert_array_equal(np.asarray(terms.fast_energy), np.tile(np.eye(3), (2, 1)))
@@ -139,7 +133,7 @@ def test_per_view_fast_lights_terms_are_each_views_own_in_one_program(rng):
         assert np.all(np.asarray(terms.fast_weight)[one][:, 3:] == 0) and np.all(np.asarray(terms.theta_h)[one][:, 3:] == 0)
     # grey lights only: one channel, no channel columns
     grey = [solvers.Lighting(None, jnp.asarray(d[None]), jnp.asarray([[e]])) for d, e in zip(ld[:4], (1.0, 0.5, 2.0, 1.5))]
-    t1 = _fast_terms_by_view(obs, grey, 1, 1)
+    t1 = solvers.practical_terms_for(obs, grey)
     assert t1.theta_h.shape == (obs.n_samples, 1) and t1.fast_energy.shape == (1, 1)
     for k, lit in enumerate(grey):
         sel = vi == k

@@ -86,6 +86,7 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
     pv = r["perview"]
     assert pv["views"] == 5 and pv["n"] % 4 != 0
     assert pv["status"][0] == pv["status"][1] == "converged" and _agrees(pv["rel"], pv["steps"]), pv
+    assert pv["lm_steps"][0] >= 1 and pv["lm_steps"][1] >= 1  # the refinement ran, on the sharded pixels too
     assert abs(pv["sigma"][1] - 0.15) < 0.01  # a real fit
     assert set(pv["terms_specs"].values()) == {"P('pixels',)"}, pv["terms_specs"]
     assert pv["terms_diff"] < 1e-14 and pv["gathers"] == {} and "_fast_terms_jit" in pv["compiled"], pv
