@@ -315,9 +315,9 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
 
     Where it runs: pixels sharded over devices (`shard_observations`), each device makes its own pixels' terms
     (`solvers._pixel_sums`; lightings per view with a slow part are made view by view and replicated); many
-    pixels on one CPU device (at least 16,384 a core), with slow lighting, the pixels are cut into one part per core, each made in its own host thread, and joined: XLA:CPU runs the band
-    sums' loop on one core (`solvers._pixel_threads`; the same values, bitwise). Inside a caller's `jit`, one
-    call.
+    pixels on one CPU device (at least 16,384 a core), with slow lighting, the pixels are cut into one part per
+    core, each made in its own host thread, and joined: XLA:CPU runs the band sums' loop on one core
+    (`solvers._pixel_threads`; the same values, bitwise). Inside a caller's `jit`, one call.
     """
     lights = view_lightings(obs, lighting)
     for k, lit in enumerate([lighting] if lights is None else lights):
@@ -384,7 +384,11 @@ def _fast_tables(lights: list[Lighting], c: int, jmax: int, dt):
     lightings are concrete (eager `jnp` operations compile a small program per shape), else traced."""
     xp = jnp if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(lights)) else np
     real = np.zeros((len(lights), jmax), bool)
-    dirs = xp.zeros((len(lights), jmax, 3), dt) + xp.asarray([0.0, 0.0, 1.0], dt)
+    dirs = xp.zeros((len(lights), jmax, 3), dt)
+    if xp is np:
+        dirs[..., 2] = 1.0
+    else:
+        dirs = dirs.at[..., 2].set(1.0)
     energy = xp.zeros((len(lights), jmax, c), dt)
     for k, lit in enumerate(lights):
         j = 0 if lit.fast_directions is None else lit.fast_directions.shape[0]

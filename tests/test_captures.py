@@ -1,5 +1,6 @@
 """Real-capture shapes (issue 11): lighting per image, identifiability reporting, per-texel results in `predict`."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -131,6 +132,10 @@ def test_per_view_fast_lights_terms_are_each_views_own_in_one_program(rng):
         # a view with one source: its second pair of columns is padding, weight 0 and half angle 0
         one = vi == 0
         assert np.all(np.asarray(terms.fast_weight)[one][:, 3:] == 0) and np.all(np.asarray(terms.theta_h)[one][:, 3:] == 0)
+    # inside a caller's `jit`, the lightings traced: the same terms
+    traced = jax.jit(lambda lts: solvers.practical_terms_for(obs, lts))(lights)
+    for a, b in zip(jax.tree.leaves(traced), jax.tree.leaves(terms)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-15)
     # grey lights only: one channel, no channel columns
     grey = [solvers.Lighting(None, jnp.asarray(d[None]), jnp.asarray([[e]])) for d, e in zip(ld[:4], (1.0, 0.5, 2.0, 1.5))]
     t1 = solvers.practical_terms_for(obs, grey)
