@@ -358,13 +358,7 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
         irr = jnp.broadcast_to(t.irradiance, (n, c))
         bands = jnp.broadcast_to(t.bands, (n, c, t.bands.shape[2]))
         bands = jnp.pad(bands, ((0, 0), (0, 0), (0, lmax + 1 - bands.shape[2])))
-        en = jnp.broadcast_to(t.fast_energy, (j, c))
-        if fold:  # column j*c + c': theta_h_j, V_j L_{j,c'}
-            th = jnp.repeat(t.theta_h, c, axis=1)
-            fw = (t.fast_weight[:, :, None] * en[None, :, :]).reshape(n, j * c)
-        else:  # one channel: V_j L_j
-            th = t.theta_h
-            fw = t.fast_weight * en[:, 0][None, :] if j > 0 else t.fast_weight
+        th, fw = _source_columns(t.theta_h, t.fast_weight, jnp.broadcast_to(t.fast_energy, (j, c))[None], fold)
         pad = ((0, 0), (0, jc - th.shape[1]))
         parts.append((t.visible, t.cos_o, irr, bands, jnp.pad(th, pad), jnp.pad(fw, pad)))
         order.append(idx)
@@ -375,6 +369,15 @@ def practical_terms_for(obs: Observations, lighting, chunk: int = 256) -> jaxsh.
         cols = [x[inv] for x in cols]
     energy = jnp.tile(jnp.eye(c, dtype=dt), (jmax, 1)) if fold else jnp.ones((jmax, 1), dt)
     return jaxsh.PracticalTerms(*cols, energy)
+
+
+def _source_columns(theta_h, weight, energy, fold: bool):
+    """The fast sources' columns of `practical_terms_for`'s terms from `theta_h`, `weight` `(N, J)` and the sources'
+    energies `energy` `(N or 1, J, C)`: with `fold` (C > 1), column `j C + c'` holds $\theta_{h,j}$ and
+    $V_j L_{j,c'}$ (`(N, J C)` each); without, `theta_h` and $V_j L_j$."""
+    if fold:
+        return jnp.repeat(theta_h, energy.shape[-1], axis=1), (weight[:, :, None] * energy).reshape(weight.shape[0], -1)
+    return theta_h, weight * energy[..., 0]
 
 
 def _fast_tables(lights: list[Lighting], c: int, jmax: int, dt):
@@ -440,12 +443,7 @@ def _fast_terms_jit(pixels, tables, where):
         e = energy[vi]  # (N, J, C)
         t = jax.vmap(one)(n, v, dirs[vi], e, fvis)
         th = jnp.where(real[vi], t.theta_h[:, 0], 0.0)  # (N, J): a padding source's half angle 0, as the general path's
-        w = t.fast_weight[:, 0]
-        npx = n.shape[0]
-        if c > 1:  # column j*c + c': theta_h_j, V_j L_{j,c'}
-            th, w = jnp.repeat(th, c, axis=1), (w[:, :, None] * e).reshape(npx, -1)
-        else:
-            w = w * e[:, :, 0]
+        th, w = _source_columns(th, t.fast_weight[:, 0], e, c > 1)
         return t.visible[:, 0], t.cos_o[:, 0], t.irradiance[:, 0], t.bands[:, 0], th, w
 
     return map_over_pixels(local, where, pixels)

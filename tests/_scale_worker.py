@@ -54,8 +54,8 @@ def make_capture(size=24, n_views=2, seed=0, lmax=8, noise=0.01, scale=1.0):
 
 def light_stage_capture(size=24, n_views=5, seed=0, noise=0.01):
     """Each view under its own directional light (photometric stereo, a light stage), no slow lighting: view k lit
-    from 25 degrees off its camera, grey lights and RGB ones, one view with a second light. Returns the observations
-    and the list of one `Lighting` per view."""
+    from 0.9 rad (52 degrees) off its camera, grey lights and RGB ones, one view with a second light. Returns the
+    observations and the list of one `Lighting` per view."""
     import jax.numpy as jnp
 
     import jaxsh
@@ -70,10 +70,10 @@ def light_stage_capture(size=24, n_views=5, seed=0, noise=0.01):
         m = np.asarray(gb.mask)
         to_cam = np.asarray(gb.view)[m].mean(0)
         side = np.cross(to_cam, [0.3, 0.5, 0.8])
-        d = np.cos(0.9) * to_cam / np.linalg.norm(to_cam) + np.sin(0.9) * side / np.linalg.norm(side)
-        dirs, energy = [d], [[1.0, 0.9, 0.8] if k % 2 else [1.1]]
+        nc, ns = np.linalg.norm(to_cam), np.linalg.norm(side)
+        dirs, energy = [np.cos(0.9) * to_cam / nc + np.sin(0.9) * side / ns], [[1.0, 0.9, 0.8] if k % 2 else [1.1]]
         if k == 1:
-            dirs.append(np.cos(0.8) * to_cam / np.linalg.norm(to_cam) - np.sin(0.8) * side / np.linalg.norm(side))
+            dirs.append(np.cos(0.8) * to_cam / nc - np.sin(0.8) * side / ns)
             energy.append([0.4, 0.5, 0.6])
         lit = solvers.Lighting(None, jnp.asarray(np.array(dirs)), jnp.asarray(np.array(energy)))
         img = np.asarray(solvers.predict(brdf, lit, gb.normal, gb.view, mask=gb.mask))
@@ -200,6 +200,7 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
 def _perview_equal(k):
     """`fit_brdf` of `light_stage_capture` (one lighting per view, fast sources only) on sharded pixels against one
     device, the specs of its per-pixel terms, and the all-gathers of the programs of `solvers._data` it compiled."""
+    import equinox as eqx
     import jax
 
     import solvers
@@ -218,8 +219,6 @@ def _perview_equal(k):
         jax.block_until_ready(terms)
     got = solvers.fit_brdf(sobs, lights, refine=True)
     n = obs.n_samples
-    import equinox as eqx
-
     got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[:n])
     one = solvers.practical_terms_for(obs, lights)
     diff = max(float(np.max(np.abs(np.asarray(a)[:n].astype(float) - np.asarray(b).astype(float))))
