@@ -14,8 +14,30 @@ steps 5-8 were the rejections, each of a loss one ulp above the last accepted on
 Here a step is also accepted when the loss changed by no more than its rounding, `_FLAT` ulps of the loss
 (`RoundingTrustRegion`): such a step cannot be told from an improvement, and the termination test then
 decides on the step's size as it would for any accepted step. Where the loss still falls the trust region
-works as optimistix's. Built from optimistix's public parts (`AbstractGaussNewton`, `DampedNewtonDescent`,
+works as optimistix's. Built from optimistix's public parts (`AbstractGaussNewton`, `AbstractDescent`,
 `ClassicalTrustRegion`), as its documentation shows for custom solvers.
+
+**The damped step** (`FactoredDampedNewtonDescent`). optimistix's `DampedNewtonDescent` solves
+$\\min_\\delta \\lVert J\\delta - r\\rVert^2 + \\lambda\\lVert\\delta\\rVert^2$ ($\\lambda = 1/$step size) at every
+step with `lineax.QR` on the stacked $[J; \\sqrt\\lambda I]$: a Householder QR (LAPACK `geqrf`), then
+$Q^T [r; 0]$ by `jax.lax.linalg.ormqr` (LAPACK `dormqr`) and a triangular solve with $R$ read from the same
+packed factor. On CPU that is a race: `dormqr` writes its factor operand while it runs (the reference
+`dorm2r` sets the diagonal entry $A_{ii}$ to 1 while it applies reflector $i$, then puts it back), but the
+custom call declares that operand read-only, so XLA may run the slice that reads $R$ from the same buffer at the
+same time, and the solve then divides by 1 instead of $R_{11}$. Measured with JAX/jaxlib 0.10.2, lineax
+0.1.1 on 2 cores: `lineax.linear_solve(MatrixLinearOperator(A), b, QR())` of a random $A$ of $2\\cdot10^7
+\\times 2$ returned a wrong first component in 1 of 4 calls of the same compiled program ($-1.07$ against
+$2.1\\cdot10^{-4}$), at $5.35\\cdot10^7 \\times 2$ in 2 of 5 (always exactly $(c_1 - R_{12} x_2)/1$); the
+photometric capture of issue 11 (96 images of 612 × 512, 53.5 M residuals) then took 84 to 125 steps for the
+same data, in one process or in two; bound to one core (`taskset -c 0`) it took 84 in 3 of 3.
+
+Here the factor is made once per accepted point and never shares a buffer with a reader: the $R$ factor of
+the augmented $[J \\mid r]$ (`jnp.linalg.qr(mode="r")`, `geqrf` alone, in place on a fresh copy) gives $R$ and
+$c = Q^T r$ together, and since $\\lVert J\\delta - r\\rVert^2 = \\lVert R\\delta - c\\rVert^2 + \\rho^2$, every
+step (accepted or rejected) solves only the small $\\min \\lVert R\\delta - c\\rVert^2 + \\lambda\\lVert\\delta\\rVert^2$
+($[R; \\sqrt\\lambda I]$, $2k \\times k$). This is MINPACK's `lmpar` arrangement (Moré 1978): the
+same minimizer as optimistix's step, and one QR of the $m \\times (k+1)$ matrix per accepted step instead of one
+of $m \\times k$ and a `dormqr` per step.
 """
 
 from __future__ import annotations
@@ -23,9 +45,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
-import lineax as lx
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Float, PyTree, Scalar
 
 # A loss that changed by at most this many of its own ulps is taken as unchanged. The loss is a sum over the
 # residuals (optimistix's `sum_squares`), rounded to a relative ~log2(m) eps for m terms summed pairwise; 64
@@ -46,26 +70,78 @@ class RoundingTrustRegion(optx.ClassicalTrustRegion):
         return size, accept | flat, result, eqx.tree_at(lambda s: s.step_size, new_state, size)
 
 
+class _FactoredState(eqx.Module):
+    """`FactoredDampedNewtonDescent`'s state: `r` `(k, k)` and `c` `(k,)`, the upper triangle of the augmented
+    $[J \\mid r]$'s R factor at the last accepted point; `y` a zero of the parameters' structure (to unravel
+    the step)."""
+
+    r: Float[Array, "k k"]
+    c: Float[Array, " k"]
+    y: PyTree[Array]
+
+
+class FactoredDampedNewtonDescent(optx.AbstractDescent):
+    """The Levenberg-Marquardt step $-\\delta$, $\\delta = \\arg\\min \\lVert J\\delta - r\\rVert^2 +
+    \\lambda\\lVert\\delta\\rVert^2$ with $\\lambda = 1/$step size (optimistix's `DampedNewtonDescent`'s), from
+    the R factor of $[J \\mid r]$ made once per accepted point (module docstring: no `dormqr`, whose use by
+    `lineax.QR` races on CPU).
+
+    For residuals `(m,)` (any pytree, raveled) and parameters of `k` entries (any pytree); the Jacobian is
+    materialized, `(m, k)`, as `lineax.QR` did. A step size at or below the dtype's eps gives a zero step,
+    as optimistix's."""
+
+    def init(self, y: PyTree[Array], f_info_struct) -> _FactoredState:
+        del f_info_struct
+        flat, _ = ravel_pytree(y)
+        k = flat.shape[0]
+        return _FactoredState(jnp.zeros((k, k), flat.dtype), jnp.zeros((k,), flat.dtype),
+                              jax.tree_util.tree_map(jnp.zeros_like, y))
+
+    def query(self, y: PyTree[Array], f_info: optx.FunctionInfo.ResidualJac, state: _FactoredState) -> _FactoredState:
+        del y
+        if not isinstance(f_info, optx.FunctionInfo.ResidualJac):
+            raise ValueError("`FactoredDampedNewtonDescent` needs a least-squares problem's residual and Jacobian "
+                             f"(`FunctionInfo.ResidualJac`), got {type(f_info).__name__}")
+        jac = f_info.jac.as_matrix()  # (m, k)
+        res, _ = ravel_pytree(f_info.residual)
+        k = jac.shape[1]
+        rf = jnp.linalg.qr(jnp.concatenate([jac, res[:, None].astype(jac.dtype)], 1), mode="r")  # (min(m, k+1), k+1)
+        rf = jnp.pad(rf, ((0, k + 1 - rf.shape[0]), (0, 0)))  # fewer residuals than k + 1: zero rows
+        return _FactoredState(rf[:k, :k], rf[:k, k], state.y)
+
+    def step(self, step_size: Scalar, state: _FactoredState) -> tuple[PyTree[Array], optx.RESULTS]:
+        r, c = state.r, state.c
+        k = c.shape[0]
+        dt = r.dtype
+        step_size = jnp.asarray(step_size, dt)
+        usable = step_size > jnp.finfo(dt).eps  # as optimistix's `damped_newton_step`
+        lam = jnp.where(usable, 1 / jnp.where(usable, step_size, 1), jnp.finfo(dt).max)
+        # min |R d - c|^2 + lam |d|^2: the 2k x k least-squares problem [R; sqrt(lam) I] d = [c; 0]
+        q2, r2 = jnp.linalg.qr(jnp.concatenate([r, jnp.sqrt(lam) * jnp.eye(k, dtype=dt)]))
+        d = jax.scipy.linalg.solve_triangular(r2, q2[:k].T @ c, lower=False)
+        _, unravel = ravel_pytree(state.y)
+        return unravel(-d), optx.RESULTS.successful
+
+
 def _quiet(**kwargs):
     del kwargs
 
 
 class LevenbergMarquardt(optx.AbstractGaussNewton):
-    """`optimistix.LevenbergMarquardt` with `RoundingTrustRegion` (module docstring): the same damped Newton
-    descent, linear solver and Cauchy termination on `rtol`, `atol` (with `norm`)."""
+    """`optimistix.LevenbergMarquardt` with `RoundingTrustRegion` and `FactoredDampedNewtonDescent` (module
+    docstring): the same damped Gauss-Newton step and Cauchy termination on `rtol`, `atol` (with `norm`)."""
 
     rtol: float
     atol: float
     norm: Callable
-    descent: optx.DampedNewtonDescent
+    descent: FactoredDampedNewtonDescent
     search: RoundingTrustRegion
     verbose: Callable
 
-    def __init__(self, rtol: float, atol: float, norm: Callable = optx.max_norm,
-                 linear_solver: lx.AbstractLinearSolver = lx.QR(), verbose: Callable | None = None):
+    def __init__(self, rtol: float, atol: float, norm: Callable = optx.max_norm, verbose: Callable | None = None):
         self.rtol = rtol
         self.atol = atol
         self.norm = norm
-        self.descent = optx.DampedNewtonDescent(linear_solver=linear_solver)
+        self.descent = FactoredDampedNewtonDescent()
         self.search = RoundingTrustRegion()
         self.verbose = _quiet if verbose is None else verbose

@@ -1,8 +1,11 @@
 """`solvers._lm`: Levenberg-Marquardt that accepts a step whose loss changed only by rounding.
 
 References: the trust region's acceptance rule on hand-made losses (one ulp above, well above, below the last
-accepted one) against `optimistix.ClassicalTrustRegion`'s; the solution against `scipy.optimize.least_squares`
-and against a linear problem's closed form."""
+accepted one) against `optimistix.ClassicalTrustRegion`'s; the damped step against `numpy.linalg.lstsq` of the
+stacked system; the solution against `scipy.optimize.least_squares` and against a linear problem's closed form;
+the compiled program against the LAPACK call that races (`dormqr`)."""
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +15,7 @@ import optimistix as optx
 import pytest
 import scipy.optimize
 
-from solvers._lm import _FLAT, LevenbergMarquardt, RoundingTrustRegion
+from solvers._lm import _FLAT, FactoredDampedNewtonDescent, LevenbergMarquardt, RoundingTrustRegion
 
 
 def _info(residual, jac):
@@ -109,3 +112,50 @@ def test_jit_and_float32():
     ref = scipy.optimize.least_squares(lambda q: q[0] * np.exp(-q[1] * np.asarray(t, float)) - np.asarray(data, float),
                                        [1.0, 1.0], method="lm", xtol=1e-14, ftol=1e-14).x
     np.testing.assert_allclose(np.asarray(p), ref, rtol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_damped_step_is_the_stacked_least_squares_solution(dtype):
+    r"""`FactoredDampedNewtonDescent`'s step at several step sizes is $-\delta$, $\delta$ the least-squares solution
+    of $[J; \sqrt{\lambda} I]\delta = [r; 0]$, $\lambda = 1/$size (`numpy.linalg.lstsq` in float64 of the stacked
+    system: optimistix's step, by another route), for parameters given as a pytree (a dict of a vector and a
+    scalar, raveled in `ravel_pytree`'s order) and for fewer residuals than parameters + 1; a step size at or
+    below eps gives a zero step."""
+    rng = np.random.default_rng(7)
+    tol = 1e-11 if dtype == jnp.float64 else 2e-4
+    for m in (300, 2):
+        jac = rng.normal(size=(m, 3)) * np.array([1.0, 30.0, 0.2])  # columns of unequal scale
+        res = rng.normal(size=m)
+        y = {"a": jnp.zeros(2, dtype), "b": jnp.zeros((), dtype)}  # ravel_pytree order: a[0], a[1], b
+        d = FactoredDampedNewtonDescent()
+        state = d.query(y, _info(res.astype(dtype), jac.astype(dtype)), d.init(y, None))
+        for size in (1e-3, 0.25, 1.0, 40.0, 1e6):
+            step, result = d.step(jnp.asarray(size, dtype), state)
+            assert result == optx.RESULTS.successful
+            got = np.concatenate([np.asarray(step["a"], np.float64), [float(step["b"])]])
+            assert step["a"].dtype == dtype and step["b"].shape == ()
+            stacked = np.concatenate([jac, np.sqrt(1.0 / size) * np.eye(3)])
+            want = -np.linalg.lstsq(stacked, np.concatenate([res, np.zeros(3)]), rcond=None)[0]
+            np.testing.assert_allclose(got, want, rtol=tol, atol=tol * np.max(np.abs(want)))
+        step, _ = d.step(jnp.asarray(np.finfo(dtype).eps / 2, dtype), state)
+        assert float(jnp.max(jnp.abs(step["a"]))) == 0.0 and float(step["b"]) == 0.0
+
+
+def test_program_has_no_ormqr():
+    """The compiled Levenberg-Marquardt holds no LAPACK `dormqr` call, the one that races on CPU (module docstring
+    of `solvers._lm`: it writes the factor that XLA lets a concurrent slice read); optimistix's own holds one (its
+    `lineax.QR`), so the check sees what it looks for."""
+    t = jnp.linspace(0.0, 3.0, 64)
+    data = 2.0 * jnp.exp(-1.3 * t)
+
+    def text(solver):
+        fit = jax.jit(lambda p0: optx.least_squares(lambda p, _: p[0] * jnp.exp(-p[1] * t) - data, solver, p0,
+                                                    max_steps=20, throw=False).value)
+        return fit.lower(jnp.asarray([1.0, 0.5])).compile().as_text()
+
+    def targets(solver):
+        return set(re.findall(r'custom_call_target="(\w+)"', text(solver)))
+
+    assert any("ormqr" in c for c in targets(optx.LevenbergMarquardt(1e-8, 1e-8)))
+    ours = targets(LevenbergMarquardt(1e-8, 1e-8))
+    assert not any("ormqr" in c for c in ours) and any("geqrf" in c for c in ours), ours

@@ -36,6 +36,8 @@ import optimistix as optx
 
 import jaxsh
 
+from .._lm import LevenbergMarquardt
+
 VIEW = np.array([0.0, 0.0, 1.0])
 
 
@@ -163,7 +165,7 @@ def _lm_fit_jit(model, theta0, wi, wo, n, f, cos, max_steps):
     def residual(theta, fc):
         return (model(theta, wi, wo, n) - fc) * cos
 
-    solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9)
+    solver = LevenbergMarquardt(rtol=1e-7, atol=1e-9)  # not optimistix's: its lineax.QR step races on CPU (solvers._lm)
 
     def one(theta, fc):
         sol = optx.least_squares(residual, solver, theta, args=fc, max_steps=max_steps, throw=False)
