@@ -48,6 +48,7 @@ from ._jacobian import explicit_jacobian
 from ._lm import LevenbergMarquardt
 from ._normal_equations import (covariance_from_gram, covariance_from_jacobian, inverse_sym2_diag, nonneg_sym2,
                                 solve_grouped_shared_nonneg, solve_sym2_min_norm)
+from ._pixel_sums import pixel_sharding
 from ._results import Solution, Status, check_bool, check_float, check_int, finish, rms_pair, signal_status, status_from_optimistix, worst
 from ._threads import blas_single_thread
 
@@ -380,8 +381,11 @@ def fit_brdf(
     # None: the refinement only when the search ran on a subset (with all samples it would minimize what the
     # simplex just minimized)
     refine = (search is not None) if refine is None else refine
+    # samples sharded over several devices: the refinement's QR runs on each device's rows (`solvers._lm`)
+    where = pixel_sharding(obs.weights)
+    blocks = 1 if where is None else int(where[0].shape[where[1]])
     res = _fit_brdf(terms, obs.values, obs.weights, obs.texel, u_grid, obs.n_texels, fresnel, textured, refine,
-                    int(max_steps), rtol, atol, search)
+                    int(max_steps), rtol, atol, search, blocks)
     return finish(res, throw)
 
 
@@ -427,7 +431,8 @@ def _rows_of(terms, idx):
 
 
 @jaxsh.jit
-def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, max_steps, rtol, atol, search=None):
+def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, max_steps, rtol, atol, search=None,
+              blocks: int = 1):
     dt = b.dtype
     nobs = jnp.sum((w > 0).astype(dt)) * b.shape[1]
     sw = jnp.sqrt(w)[:, None]
@@ -490,11 +495,14 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             uu = jnp.where(pinned, u, p.astype(dt))
             uc = jnp.clip(uu, lo, hi)
             r, _aux = profiled(uc)
-            return (jnp.concatenate([r.reshape(-1), jnp.sqrt(wall) * (uu - uc)]) / jnp.sqrt(unit)).astype(pdt)
+            # the samples' (N, C) and the box's wall (2,) as two leaves: on sharded samples a concatenation would
+            # gather every residual to one device at every step
+            scale = jnp.sqrt(unit)
+            return (r / scale).astype(pdt), (jnp.sqrt(wall) * (uu - uc) / scale).astype(pdt)
 
         p0 = u.astype(pdt)
         # `explicit_jacobian`: the solver's state then holds the (m, 2) Jacobian, not the residual's intermediates
-        lm = optx.least_squares(explicit_jacobian(resid), LevenbergMarquardt(rtol=rtol, atol=atol), p0,
+        lm = optx.least_squares(explicit_jacobian(resid), LevenbergMarquardt(rtol=rtol, atol=atol, blocks=blocks), p0,
                                 max_steps=max_steps, throw=False)
         p1 = lm.value
         # both ends in one batched evaluation, which is also the final evaluation (the estimate, the residual and the

@@ -21,7 +21,9 @@ def explicit_jacobian(fn):
     """`fn(p, args) -> (m,)` with the same values and derivatives, linearized as `J @ dp`, `J = jacfwd(fn)` `(m, k)`.
 
     For `p` of shape `(k,)` with small `k` (the forward-mode Jacobian costs `k` tangent evaluations).
-    `args` is not differentiated (its tangent is ignored)."""
+    `args` is not differentiated (its tangent is ignored). `fn` may return a pytree of arrays: each leaf of
+    shape `s` then gets its own Jacobian `(*s, k)` (`fit_brdf`'s residual keeps its `(N, C)` samples apart from
+    the box's two wall entries, so that sharded samples are not concatenated)."""
 
     @jax.custom_jvp
     def wrapped(p, args):
@@ -32,7 +34,7 @@ def explicit_jacobian(fn):
         p, args = primals
         dp = tangents[0]
         eye = jnp.eye(p.shape[0], dtype=p.dtype)
-        y, jac = jax.vmap(lambda t: jax.jvp(lambda q: fn(q, args), (p,), (t,)), out_axes=(None, 1))(eye)
-        return y, jac @ dp
+        y, jac = jax.vmap(lambda t: jax.jvp(lambda q: fn(q, args), (p,), (t,)), out_axes=(None, -1))(eye)
+        return y, jax.tree_util.tree_map(lambda j: j @ dp, jac)
 
     return wrapped

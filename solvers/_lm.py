@@ -86,9 +86,16 @@ class FactoredDampedNewtonDescent(optx.AbstractDescent):
     the R factor of $[J \\mid r]$ made once per accepted point (module docstring: no `dormqr`, whose use by
     `lineax.QR` races on CPU).
 
-    For residuals `(m,)` (any pytree, raveled) and parameters of `k` entries (any pytree); the Jacobian is
-    materialized, `(m, k)`, as `lineax.QR` did. A step size at or below the dtype's eps gives a zero step,
-    as optimistix's."""
+    For residuals given as any pytree of arrays and parameters of `k` entries (any pytree); the Jacobian is
+    materialized, `(*s, k)` for a residual leaf of shape `s`, as `lineax.QR` did (as one `(m, k)` matrix). Each
+    leaf's $[J \\mid r]$ is factored apart and, with `blocks` > 1, in `blocks` equal row blocks along the leaf's
+    first axis (where it divides it); the small factors are stacked and factored again (TSQR: the R factor of
+    stacked rows is that of the stacked R factors, up to the rows' signs, which the step does not see). With the
+    samples sharded over `blocks` devices (`fit_brdf`), each device then factors its own rows and only the
+    `(blocks (k + 1), k + 1)` factors are gathered, not the `(m, k + 1)` matrix. A step size at or below the
+    dtype's eps gives $\\lambda$ = the dtype's largest value, a vanishing step, as optimistix's."""
+
+    blocks: int = eqx.field(static=True, default=1)
 
     def init(self, y: PyTree[Array], f_info_struct) -> _FactoredState:
         del f_info_struct
@@ -102,10 +109,16 @@ class FactoredDampedNewtonDescent(optx.AbstractDescent):
         if not isinstance(f_info, optx.FunctionInfo.ResidualJac):
             raise ValueError("`FactoredDampedNewtonDescent` needs a least-squares problem's residual and Jacobian "
                              f"(`FunctionInfo.ResidualJac`), got {type(f_info).__name__}")
-        jac = f_info.jac.as_matrix()  # (m, k)
-        res, _ = ravel_pytree(f_info.residual)
-        k = jac.shape[1]
-        rf = jnp.linalg.qr(jnp.concatenate([jac, res[:, None].astype(jac.dtype)], 1), mode="r")  # (min(m, k+1), k+1)
+        flat, unravel = ravel_pytree(state.y)
+        k = flat.shape[0]
+        # the Jacobian of each residual leaf, (*s, k): J e_j for the k unit vectors (lineax's `as_matrix`, per leaf)
+        cols = jax.vmap(lambda e: f_info.jac.mv(unravel(e)), out_axes=-1)(jnp.eye(k, dtype=flat.dtype))
+        parts = []
+        for j, r in zip(jax.tree_util.tree_leaves(cols), jax.tree_util.tree_leaves(f_info.residual)):
+            a = jnp.concatenate([j, r[..., None].astype(j.dtype)], -1)  # (*s, k + 1)
+            b = self.blocks if a.ndim > 1 and a.shape[0] % self.blocks == 0 else 1
+            parts.append(jnp.linalg.qr(a.reshape(b, -1, k + 1), mode="r").reshape(-1, k + 1))  # b R factors
+        rf = parts[0] if len(parts) == 1 and parts[0].shape[0] <= k + 1 else jnp.linalg.qr(jnp.concatenate(parts), mode="r")
         rf = jnp.pad(rf, ((0, k + 1 - rf.shape[0]), (0, 0)))  # fewer residuals than k + 1: zero rows
         return _FactoredState(rf[:k, :k], rf[:k, k], state.y)
 
@@ -129,7 +142,8 @@ def _quiet(**kwargs):
 
 class LevenbergMarquardt(optx.AbstractGaussNewton):
     """`optimistix.LevenbergMarquardt` with `RoundingTrustRegion` and `FactoredDampedNewtonDescent` (module
-    docstring): the same damped Gauss-Newton step and Cauchy termination on `rtol`, `atol` (with `norm`)."""
+    docstring): the same damped Gauss-Newton step and Cauchy termination on `rtol`, `atol` (with `norm`); `blocks`:
+    `FactoredDampedNewtonDescent`'s row blocks (the devices the residuals are sharded over)."""
 
     rtol: float
     atol: float
@@ -138,10 +152,11 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
     search: RoundingTrustRegion
     verbose: Callable
 
-    def __init__(self, rtol: float, atol: float, norm: Callable = optx.max_norm, verbose: Callable | None = None):
+    def __init__(self, rtol: float, atol: float, norm: Callable = optx.max_norm, verbose: Callable | None = None,
+                 blocks: int = 1):
         self.rtol = rtol
         self.atol = atol
         self.norm = norm
-        self.descent = FactoredDampedNewtonDescent()
+        self.descent = FactoredDampedNewtonDescent(blocks)
         self.search = RoundingTrustRegion()
         self.verbose = _quiet if verbose is None else verbose

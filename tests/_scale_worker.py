@@ -199,12 +199,13 @@ def run_equal(which=("fit_brdf", "inverse_lighting", "factorize")):
 
 def _perview_equal(k):
     """`fit_brdf` of `light_stage_capture` (one lighting per view, fast sources only) on sharded pixels against one
-    device, the specs of its per-pixel terms, and the all-gathers of the programs of `solvers._data` it compiled."""
+    device, the specs of its per-pixel terms, the all-gathers of the programs of `solvers._data` it compiled, and
+    those of the fit's own programs (`solvers._brdf`)."""
     import equinox as eqx
     import jax
 
     import solvers
-    from solvers import _data
+    from solvers import _brdf, _data
 
     obs, lights = light_stage_capture()
     obs = uneven(obs, k)
@@ -217,7 +218,8 @@ def _perview_equal(k):
     with counter as gathers:
         terms = solvers.practical_terms_for(sobs, lights)
         jax.block_until_ready(terms)
-    got = solvers.fit_brdf(sobs, lights, refine=True)
+    with _gathers_of(_brdf) as fit_gathers:  # the fit's own programs: the Levenberg-Marquardt QR per device (TSQR)
+        got = solvers.fit_brdf(sobs, lights, refine=True)
     n = obs.n_samples
     got = eqx.tree_at(lambda r: r.fitted, got, got.fitted[:n])
     one = solvers.practical_terms_for(obs, lights)
@@ -228,7 +230,8 @@ def _perview_equal(k):
                 cov_cond=float(np.linalg.cond(np.asarray(ref.covariance))),
                 rest=compare(eqx.tree_at(lambda r: r.covariance, got, ref.covariance), ref),
                 terms_specs={f: str(getattr(terms, f).sharding.spec) for f in ("irradiance", "theta_h", "fast_weight", "cos_o")},
-                terms_diff=diff, gathers=gathers, compiled=sorted({sig[0] for sig in counter.seen}), views=len(lights), n=n)
+                terms_diff=diff, gathers=gathers, compiled=sorted({sig[0] for sig in counter.seen}), views=len(lights), n=n,
+                fit_gathers=fit_gathers)
 
 
 def _compiled_by(call):

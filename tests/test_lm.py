@@ -114,21 +114,32 @@ def test_jit_and_float32():
     np.testing.assert_allclose(np.asarray(p), ref, rtol=1e-5)
 
 
+@pytest.mark.parametrize("blocks", [1, 3])
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_damped_step_is_the_stacked_least_squares_solution(dtype):
+def test_damped_step_is_the_stacked_least_squares_solution(dtype, blocks):
     r"""`FactoredDampedNewtonDescent`'s step at several step sizes is $-\delta$, $\delta$ the least-squares solution
     of $[J; \sqrt{\lambda} I]\delta = [r; 0]$, $\lambda = 1/$size (`numpy.linalg.lstsq` in float64 of the stacked
     system: optimistix's step, by another route), for parameters given as a pytree (a dict of a vector and a
-    scalar, raveled in `ravel_pytree`'s order) and for fewer residuals than parameters + 1; a step size at or
-    below eps gives a zero step."""
+    scalar, raveled in `ravel_pytree`'s order), for residuals given as a pytree (a `(m/2, 2)` leaf and a `(2,)`
+    leaf, as `fit_brdf`'s samples and wall), in one block and in `blocks` row blocks (TSQR), and for fewer
+    residuals than parameters + 1; a step size at or below eps gives a vanishing step (below 1e-30)."""
     rng = np.random.default_rng(7)
     tol = 1e-11 if dtype == jnp.float64 else 2e-4
-    for m in (300, 2):
+    y = {"a": jnp.zeros(2, dtype), "b": jnp.zeros((), dtype)}  # ravel_pytree order: a[0], a[1], b
+    for m, tree in ((300, False), (302, True), (2, False)):  # 300 and 150 rows: 3 blocks divide both
         jac = rng.normal(size=(m, 3)) * np.array([1.0, 30.0, 0.2])  # columns of unequal scale
         res = rng.normal(size=m)
-        y = {"a": jnp.zeros(2, dtype), "b": jnp.zeros((), dtype)}  # ravel_pytree order: a[0], a[1], b
-        d = FactoredDampedNewtonDescent()
-        state = d.query(y, _info(res.astype(dtype), jac.astype(dtype)), d.init(y, None))
+        jd = jnp.asarray(jac, dtype)
+
+        def mv(v, jd=jd, tree=tree):
+            out = jd @ jnp.concatenate([v["a"], v["b"][None]])
+            return (out[:-2].reshape(-1, 2), out[-2:]) if tree else out
+
+        op = lx.FunctionLinearOperator(mv, jax.eval_shape(lambda: y))
+        r = jnp.asarray(res, dtype)
+        d = FactoredDampedNewtonDescent(blocks)
+        info = optx.FunctionInfo.ResidualJac((r[:-2].reshape(-1, 2), r[-2:]) if tree else r, op)
+        state = d.query(y, info, d.init(y, None))
         for size in (1e-3, 0.25, 1.0, 40.0, 1e6):
             step, result = d.step(jnp.asarray(size, dtype), state)
             assert result == optx.RESULTS.successful
@@ -138,7 +149,8 @@ def test_damped_step_is_the_stacked_least_squares_solution(dtype):
             want = -np.linalg.lstsq(stacked, np.concatenate([res, np.zeros(3)]), rcond=None)[0]
             np.testing.assert_allclose(got, want, rtol=tol, atol=tol * np.max(np.abs(want)))
         step, _ = d.step(jnp.asarray(np.finfo(dtype).eps / 2, dtype), state)
-        assert float(jnp.max(jnp.abs(step["a"]))) == 0.0 and float(step["b"]) == 0.0
+        # lambda = the dtype's largest value (optimistix's): a step of the order of its inverse
+        assert max(float(jnp.max(jnp.abs(step["a"]))), abs(float(step["b"]))) < 1e-30
 
 
 def test_program_has_no_ormqr():

@@ -7,7 +7,9 @@ each sharded result is the same solver on one device (itself tested against clos
 """
 
 import json
+import math
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -90,6 +92,12 @@ def test_sharded_solvers_equal_one_device_with_uneven_pixels():
     assert abs(pv["sigma"][1] - 0.15) < 0.01  # a real fit
     assert set(pv["terms_specs"].values()) == {"P('pixels',)"}, pv["terms_specs"]
     assert pv["terms_diff"] < 1e-14 and pv["gathers"] == {} and "_fast_terms_jit" in pv["compiled"], pv
+    # the fit gathers no per-sample array: the Levenberg-Marquardt QR factors each device's rows and gathers the
+    # (devices x 3, 3) factors (before: the (N C,) residual at every step and the (N C + 2, 3) [J | r] at every
+    # accepted step, 5,640 and 16,926 entries here)
+    sizes = [math.prod(int(d) for d in re.match(r"\w+\[([\d,]*)\]", shape).group(1).split(",") if d)
+             for shapes in pv["fit_gathers"].values() for shape in shapes]
+    assert "_fit_brdf" in pv["fit_gathers"] and max(sizes) <= 4 * 3 * 3 < pv["n"], pv["fit_gathers"]
 
 
 # factorize's stage 1 finds K_s by golden section and mu by a parabola through RSS values: a minimizer located
