@@ -38,6 +38,33 @@ def test_explicit_jacobian_has_the_derivatives_of_the_function_and_a_small_linea
     np.testing.assert_allclose(np.asarray(lin(jnp.asarray([1.0, -2.0]))), fd @ np.asarray([1.0, -2.0]), rtol=1e-6, atol=1e-6)
 
 
+
+def test_explicit_jacobian_of_a_pytree_residual(rng):
+    """A residual given as two leaves (`fit_brdf`'s `(N, C)` samples and the box's `(2,)` wall): each leaf's
+    values are the function's, and its linearization applied to a tangent is that leaf's central differences
+    (not autodiff of either) applied to it."""
+    table = jnp.asarray(rng.normal(size=(300, 40)))
+    args = jnp.asarray(rng.normal(size=300))
+    flat = _fn(table)
+
+    def fn(p, a):
+        r = flat(p, a)
+        return r.reshape(150, 2), jnp.stack([p[0] ** 2, jnp.sin(p[1])])
+
+    wrapped = explicit_jacobian(fn)
+    p = jnp.asarray([0.3, 0.05])
+    for got, want in zip(wrapped(p, args), fn(p, args)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    h = 1e-6
+    dp = np.asarray([1.0, -2.0])
+    _, lin = jax.linearize(lambda q: wrapped(q, args), p)
+    out = lin(jnp.asarray(dp))
+    for i, got in enumerate(out):
+        fd = np.stack([(np.asarray(fn(p + h * e, args)[i]) - np.asarray(fn(p - h * e, args)[i])) / (2 * h)
+                       for e in jnp.eye(2)], -1)  # (*leaf, 2)
+        assert got.shape == fd.shape[:-1]
+        np.testing.assert_allclose(np.asarray(got), fd @ dp, rtol=1e-6, atol=1e-6)
+
 def test_covariance_does_not_depend_on_the_parameters_units(rng):
     """`covariance_from_jacobian` against NumPy's float64 inverse of J^T J: with columns of very different scales
     (images 1000x brighter scale the Kd, Ks columns, not the mu, sigma ones) float32 gives the same standard errors;
