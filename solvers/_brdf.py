@@ -501,7 +501,8 @@ def _fit_brdf(terms, b, w, texel, u_grid, n_texels, fresnel, textured, refine, m
             return (r / scale).astype(pdt), (jnp.sqrt(wall) * (uu - uc) / scale).astype(pdt)
 
         p0 = u.astype(pdt)
-        # `explicit_jacobian`: the solver's state then holds the (m, 2) Jacobian, not the residual's intermediates
+        # `explicit_jacobian`: the solver's state then holds the Jacobian ((N, C, 2) and (2, 2)), not the residual's
+        # intermediates
         lm = optx.least_squares(explicit_jacobian(resid), LevenbergMarquardt(rtol=rtol, atol=atol, blocks=blocks), p0,
                                 max_steps=max_steps, throw=False)
         p1 = lm.value

@@ -113,12 +113,15 @@ class FactoredDampedNewtonDescent(optx.AbstractDescent):
         k = flat.shape[0]
         # the Jacobian of each residual leaf, (*s, k): J e_j for the k unit vectors (lineax's `as_matrix`, per leaf)
         cols = jax.vmap(lambda e: f_info.jac.mv(unravel(e)), out_axes=-1)(jnp.eye(k, dtype=flat.dtype))
-        parts = []
+        parts, stacked = [], False
         for j, r in zip(jax.tree_util.tree_leaves(cols), jax.tree_util.tree_leaves(f_info.residual)):
             a = jnp.concatenate([j, r[..., None].astype(j.dtype)], -1)  # (*s, k + 1)
             b = self.blocks if a.ndim > 1 and a.shape[0] % self.blocks == 0 else 1
+            stacked |= b > 1
             parts.append(jnp.linalg.qr(a.reshape(b, -1, k + 1), mode="r").reshape(-1, k + 1))  # b R factors
-        rf = parts[0] if len(parts) == 1 and parts[0].shape[0] <= k + 1 else jnp.linalg.qr(jnp.concatenate(parts), mode="r")
+        # one leaf in one block is already triangular; stacked factors are not (even when they have k + 1 rows)
+        stacked |= len(parts) > 1
+        rf = jnp.linalg.qr(jnp.concatenate(parts), mode="r") if stacked else parts[0]
         rf = jnp.pad(rf, ((0, k + 1 - rf.shape[0]), (0, 0)))  # fewer residuals than k + 1: zero rows
         return _FactoredState(rf[:k, :k], rf[:k, k], state.y)
 

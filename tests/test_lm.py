@@ -114,7 +114,7 @@ def test_jit_and_float32():
     np.testing.assert_allclose(np.asarray(p), ref, rtol=1e-5)
 
 
-@pytest.mark.parametrize("blocks", [1, 3])
+@pytest.mark.parametrize("blocks", [1, 2, 3])
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_damped_step_is_the_stacked_least_squares_solution(dtype, blocks):
     r"""`FactoredDampedNewtonDescent`'s step at several step sizes is $-\delta$, $\delta$ the least-squares solution
@@ -126,7 +126,7 @@ def test_damped_step_is_the_stacked_least_squares_solution(dtype, blocks):
     rng = np.random.default_rng(7)
     tol = 1e-11 if dtype == jnp.float64 else 2e-4
     y = {"a": jnp.zeros(2, dtype), "b": jnp.zeros((), dtype)}  # ravel_pytree order: a[0], a[1], b
-    for m, tree in ((300, False), (302, True), (2, False)):  # 300 and 150 rows: 3 blocks divide both
+    for m, tree in ((300, False), (302, True), (2, False), (3, False), (4, False)):  # blocks of 1 or 2 rows
         jac = rng.normal(size=(m, 3)) * np.array([1.0, 30.0, 0.2])  # columns of unequal scale
         res = rng.normal(size=m)
         jd = jnp.asarray(jac, dtype)
