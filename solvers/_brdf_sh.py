@@ -26,13 +26,14 @@ from jaxtyping import Array, Float, Int
 import jaxsh
 
 from ._data import Lighting, Observations, view_lightings
+from ._lapack import map_lapack
+from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, worst
+from ._threads import blas_single_thread
 
 
 def _is_number_list(x) -> bool:
     """A nested list of numbers (an SH array given as lists), not a sequence of `Lighting`."""
     return isinstance(x, (list, tuple)) and len(x) > 0 and not isinstance(x[0], Lighting)
-from ._results import Solution, Status, check_float, check_int, finish, rms_pair, signal_status, worst
-from ._threads import blas_single_thread
 
 
 class BRDFSHResult(Solution):
@@ -171,7 +172,8 @@ def _fit_brdf_sh(obs, L, lmax, cols, rcond):
         # (n_unknowns,) whatever the pixel count: the SVD gives min(N, n_unknowns) values, the rest are 0
         return x, jnp.sum(keep), jnp.sum(r * r), jnp.pad(s, (0, cols.shape[0] - s.shape[0]))
 
-    x, rank, rss, sv = jax.vmap(channel, in_axes=(2 if per_view else 1, 1))(lc, obs.values)
+    # one channel at a time on a CPU (`map_lapack`: a batched CPU SVD can deadlock, `solvers._lapack`)
+    x, rank, rss, sv = map_lapack(channel, jnp.moveaxis(lc, 2 if per_view else 1, 0), jnp.moveaxis(obs.values, 1, 0))
     c = L.shape[-1]
     rho = jnp.zeros(((lmax + 1) ** 3, c), obs.values.dtype).at[cols].set(x.T).reshape((lmax + 1,) * 3 + (c,))
     nobs = jnp.sum((obs.weights > 0).astype(rss.dtype)) * c

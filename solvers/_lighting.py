@@ -55,6 +55,7 @@ import lineax as lx
 import jaxsh
 
 from ._data import Lighting, Observations, TorranceSparrow
+from ._lapack import map_lapack
 from ._normal_equations import Gram, accumulate_gram, channel_system, eig_solve, eq25_rows, pixel_chunks
 from ._pixel_sums import pixel_sharding, sum_over_pixels
 from ._results import (Solution, Status, check_float, check_int, finish, rms_pair, signal_status, status_from_lbfgsb,
@@ -531,7 +532,8 @@ def _dual(obs, kd, ks, mu, h, nonneg, maxiter, tol, rcond):
 
     # a Lambertian channel's consistency matrix is I - P Y9 ~ 0: solve I x = 0 there and use the diffuse fit
     mats = jnp.where(lambertian[:, None, None], eye[None], eye[None] + pm)
-    l1, lin = jax.vmap(consistency_solve)(mats, jnp.where(lambertian[:, None], 0.0, pa.T))
+    # one channel at a time on a CPU (`map_lapack`: a batched CPU LU can deadlock, `solvers._lapack`)
+    l1, lin = map_lapack(consistency_solve, mats, jnp.where(lambertian[:, None], 0.0, pa.T))
     l1 = jnp.where(lambertian[None, :], _diffuse_l2(d, wv, b, kd, rcond), l1.T)  # (9, C)
     # only l <= 2 is determined in a Lambertian channel (R&H sec. 3)
     lin = jax.vmap(lambda lam, st: Status.where(lam, Status.ill_conditioned, st))(lambertian, lin)

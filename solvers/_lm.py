@@ -51,6 +51,8 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PyTree, Scalar
 
+from ._lapack import unbatched
+
 # A loss that changed by at most this many of its own ulps is taken as unchanged. The loss is a sum over the
 # residuals (optimistix's `sum_squares`), rounded to a relative ~log2(m) eps for m terms summed pairwise; 64
 # covers 2^64 terms, and is still 1.4e-14 relative in float64.
@@ -118,10 +120,10 @@ class FactoredDampedNewtonDescent(optx.AbstractDescent):
             a = jnp.concatenate([j, r[..., None].astype(j.dtype)], -1)  # (*s, k + 1)
             b = self.blocks if a.ndim > 1 and a.shape[0] % self.blocks == 0 else 1
             stacked |= b > 1
-            parts.append(jnp.linalg.qr(a.reshape(b, -1, k + 1), mode="r").reshape(-1, k + 1))  # b R factors
+            parts.append(unbatched(_r_factor)(a.reshape(b, -1, k + 1)).reshape(-1, k + 1))  # b R factors
         # one leaf in one block is already triangular; stacked factors are not (even when they have k + 1 rows)
         stacked |= len(parts) > 1
-        rf = jnp.linalg.qr(jnp.concatenate(parts), mode="r") if stacked else parts[0]
+        rf = unbatched(_r_factor)(jnp.concatenate(parts)) if stacked else parts[0]
         rf = jnp.pad(rf, ((0, k + 1 - rf.shape[0]), (0, 0)))  # fewer residuals than k + 1: zero rows
         return _FactoredState(rf[:k, :k], rf[:k, k], state.y)
 
@@ -132,9 +134,7 @@ class FactoredDampedNewtonDescent(optx.AbstractDescent):
         step_size = jnp.asarray(step_size, dt)
         usable = step_size > jnp.finfo(dt).eps  # as optimistix's `damped_newton_step`
         lam = jnp.where(usable, 1 / jnp.where(usable, step_size, 1), jnp.finfo(dt).max)
-        # min |R d - c|^2 + lam |d|^2: the 2k x k least-squares problem [R; sqrt(lam) I] d = [c; 0]
-        q2, r2 = jnp.linalg.qr(jnp.concatenate([r, jnp.sqrt(lam) * jnp.eye(k, dtype=dt)]))
-        d = jax.scipy.linalg.solve_triangular(r2, q2[:k].T @ c, lower=False)
+        d = unbatched(_damped_solve)(r, c, lam)
         _, unravel = ravel_pytree(state.y)
         return unravel(-d), optx.RESULTS.successful
 
@@ -163,3 +163,17 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         self.descent = FactoredDampedNewtonDescent(blocks)
         self.search = RoundingTrustRegion()
         self.verbose = _quiet if verbose is None else verbose
+
+
+def _r_factor(a):
+    """The R factor of `a` `(..., m, n)` (`geqrf` alone)."""
+    return jnp.linalg.qr(a, mode="r")
+
+
+def _damped_solve(r, c, lam):
+    """min |R d - c|^2 + lam |d|^2 for an upper-triangular `r` `(k, k)`: the 2k x k least-squares problem
+    [R; sqrt(lam) I] d = [c; 0] by QR. Under a `vmap` (a batch of fits, `fit_many`) it runs one fit at a time on a
+    CPU (`unbatched`: a batched CPU LAPACK call can deadlock, `solvers._lapack`)."""
+    k = c.shape[0]
+    q2, r2 = jnp.linalg.qr(jnp.concatenate([r, jnp.sqrt(lam) * jnp.eye(k, dtype=r.dtype)]))
+    return jax.scipy.linalg.solve_triangular(r2, q2[:k].T @ c, lower=False)

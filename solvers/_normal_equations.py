@@ -45,6 +45,8 @@ import jax.numpy as jnp
 
 import jaxsh
 
+from ._lapack import map_lapack, unbatched
+
 # --------------------------------------------------------------------------- Gram blocks of eq. 25
 
 
@@ -327,24 +329,15 @@ def channel_system(g: Gram, kd, ks):
 # --------------------------------------------------------------------------- eigen solves (outside loops)
 
 
-def batched_lapack_safe() -> bool:
-    """Whether a batched LAPACK call (`eigh` of a stack) may run: not on several local CPU devices.
-
-    jaxlib fans a batched CPU `eigh` out into the intra-op thread pool and waits from inside it; forced host
-    devices share that pool and deadlocked (docs/howto_scale.md). With one local device (the usual case) the
-    batched call is safe and compiles as one LAPACK call: 9 unbatched `eigh` + pseudo-inverses of
-    `factorize`'s μ round took 0.71 s of XLA compilation, the batched form 0.12 s (same results, same run
-    time). Read at trace time."""
-    return jax.default_backend() != "cpu" or jax.local_device_count() == 1
-
-
 def eigh_stack(a):
-    """`jnp.linalg.eigh` of each matrix of the stack `a` `(K, n, n)`: one batched call where
-    `batched_lapack_safe`, else one call per matrix (stacked)."""
-    if batched_lapack_safe():
-        return jnp.linalg.eigh(a)
-    pairs = [jnp.linalg.eigh(a[i]) for i in range(a.shape[0])]
-    return jnp.stack([p[0] for p in pairs]), jnp.stack([p[1] for p in pairs])
+    """`jnp.linalg.eigh` of each matrix of the stack `a` `(K, n, n)`: on a CPU one matrix at a time, elsewhere one
+    batched call (`solvers._lapack`: a batched CPU LAPACK call can deadlock)."""
+    return map_lapack(_eigh, a)
+
+
+def _eigh(a):
+    """`jnp.linalg.eigh(a)` of the array alone (`unbatched` traces every argument: no keyword defaults)."""
+    return jnp.linalg.eigh(a)
 
 
 def eig_solve(ata, atb, bb, count, rcond, ridge, rss_of=None):
@@ -359,7 +352,7 @@ def eig_solve(ata, atb, bb, count, rcond, ridge, rss_of=None):
     50× at 0.01 %, 1000× on exact data) and in float64 gave an RSS of 0 on exact data; `inverse_lighting`
     passes the residual's own sum over the pixels.
     """
-    # ascending; one call per channel on several local CPU devices (`eigh_stack`, docs/howto_scale.md)
+    # ascending; one call per channel on a CPU (`eigh_stack`: batched LAPACK calls deadlock there)
     evals, evecs = eigh_stack(ata)
     top = evals[:, -1:]
     keep = evals > rcond * top
@@ -385,9 +378,8 @@ def pinv_psd(a, rcond, half: bool = False):
     """Pseudo-inverse of a symmetric PSD matrix by eigendecomposition (eigenvalues < `rcond`·max dropped).
 
     With `half`, also its square-root factor $H = \\Lambda_+^{-1/2}V^T$ (rows of dropped eigenpairs zero):
-    $\\mathrm{pinv} = H^TH$. Returns `pinv` or `(pinv, H)`. A stack `(K, m, m)` goes through `eigh_stack`
-    (one batched call on one local device, one call per matrix on several: a batched CPU `eigh` deadlocked
-    there)."""
+    $\\mathrm{pinv} = H^TH$. Returns `pinv` or `(pinv, H)`. A stack `(K, m, m)` goes through `eigh_stack` (one
+    matrix at a time on a CPU: a batched CPU `eigh` can deadlock)."""
     evals, evecs = eigh_stack(a) if jnp.ndim(a) == 3 else jnp.linalg.eigh(a)
     keep = evals > rcond * jnp.max(evals, -1, keepdims=True)
     inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
@@ -425,7 +417,7 @@ def covariance_from_gram(g, rss, nobs, n_par):
     d = jnp.where(zero, 1.0, norms)
     jtj = g / (d[:, None] * d[None, :])
     s2 = rss / jnp.maximum(nobs - n_par, 1.0)
-    evals, evecs = jnp.linalg.eigh(jtj)
+    evals, evecs = unbatched(_eigh)(jtj)  # a `vmap`ped fit (`fit_many`): one at a time on a CPU
     tiny = evals <= jnp.finfo(dt).eps * jnp.max(evals) * jtj.shape[0]
     inv = jnp.where(tiny, 0.0, 1.0 / jnp.where(tiny, 1.0, evals))
     cov = (evecs * inv[None, :]) @ evecs.T * s2 / (d[:, None] * d[None, :])
