@@ -306,13 +306,15 @@ def fit_many(
     of the mesh size (their results are dropped) and sharded along the batch
     axis; each device fits its block `vmap`ped on a GPU and one capture at a
     time (`lax.map`) on CPU devices. The reason:
-    a `vmap`ped fit batches its LAPACK calls (the covariance `eigh`, and with
-    `refine=True` the Levenberg–Marquardt SVD), jaxlib runs a batched CPU LAPACK call by fanning out
-    into the intra-op thread pool and waiting inside it, and forced host
-    devices (`--xla_force_host_platform_device_count`) share that one pool:
-    with 4 devices on 2 cores a batched `eigh` hung (native stacks in
+    jaxlib runs a batched CPU LAPACK call by fanning out into the intra-op
+    thread pool and waiting inside it, and forced host devices
+    (`--xla_force_host_platform_device_count`) share that one pool: with 4
+    devices on 2 cores a batched `eigh` hung (native stacks in
     `jax::ParallelBatchMap`), and a `vmap` over the sharded batch did not
-    finish within 600 s. Every capture gets its own status (a degenerate
+    finish within 600 s. On a CPU the fit's own LAPACK calls (the covariance
+    `eigh`, the Levenberg–Marquardt QRs) also run one member at a time
+    under the `vmap` (`solvers._lapack.unbatched`): a batched call deadlocks
+    with one device too, when two run at once. Every capture gets its own status (a degenerate
     one `no_signal` or `ill_conditioned`, a capture of 0 samples
     `no_signal`); the others are unaffected: each member stops at its own
     tolerance. The results equal `fit_brdf`'s (with every sample in its
