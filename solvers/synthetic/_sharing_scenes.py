@@ -273,7 +273,7 @@ def _solve_pivoted(a, b):
 
     m = jax.lax.fori_loop(0, n, eliminate, m)
 
-    def substitute(i, x):  # row k = n - 1 - i of the triangle; x is 0 at k and above, set below it
+    def substitute(i, x):  # row k = n - 1 - i of the triangle; x is still 0 at indices <= k, solved at indices > k
         k = n - 1 - i
         return x.at[k].set((m[k, n] - m[k, :n] @ x) / m[k, k])
 
